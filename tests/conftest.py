@@ -1,0 +1,33 @@
+"""Shared fixtures: every test that takes ``variant`` runs on each variant present."""
+import numpy as np
+import pytest
+
+import mi_grg
+
+ALL_VARIANTS = ("llvm_ad_mono", "cuda_ad_mono")
+
+
+@pytest.fixture(params=ALL_VARIANTS)
+def variant(request):
+    """Activate each supported variant in turn; skip those this machine lacks (no GPU)."""
+    name = request.param
+    if name not in mi_grg.available_variants():
+        pytest.skip(f"{name} is not available on this machine")
+    previous = mi_grg.variant()
+    mi_grg.set_variant(name)
+    yield name
+    mi_grg.set_variant(previous)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
+
+
+@pytest.fixture
+def small_cone_geometry():
+    """A small cone-beam scan in R2-Gaussian's normalised units (volume in [-1, 1]^3)."""
+    from mi_grg.geometry import circular_angles
+    return mi_grg.Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(24, 32),
+                           sDetector=(3.0, 4.0), nVoxel=(16, 16, 16), sVoxel=(2.0, 2.0, 2.0),
+                           angles=circular_angles(5))
