@@ -1,0 +1,40 @@
+"""A CT case in memory: geometry, train/test projections, optional ground truth."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry import Geometry
+
+
+@dataclass
+class Case:
+    """One scan, as ``mi_grg.load_case`` returns it and ``save_case`` writes it.
+
+    Attributes:
+        geometry:    scan geometry whose ``angles`` are the training angles (radians).
+        train:       training projections [view, v, u], float32 line integrals.
+        test_angles: test angles [view] (radians); may be empty.
+        test:        test projections [view, v, u] (noise-free in simulated cases).
+        vol_gt:      ground-truth density [x, y, z] or None.
+        scene_scale: factor by which lengths and projections were multiplied on load
+                     (R2-Gaussian's 2 / max(sVoxel)); 1.0 for data in file units.
+                     Densities are not affected by it.
+        info:        what produced the data (phantom, noise model and parameters, ...),
+                     echoed into metrics.json.
+    """
+
+    geometry: Geometry
+    train: np.ndarray
+    test_angles: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    test: np.ndarray | None = None
+    vol_gt: np.ndarray | None = None
+    scene_scale: float = 1.0
+    info: dict = field(default_factory=dict)
+
+    @property
+    def test_geometry(self) -> Geometry:
+        if len(self.test_angles) == 0:
+            raise ValueError("this case has no test views")
+        return self.geometry.with_angles(self.test_angles)

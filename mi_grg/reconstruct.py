@@ -1,0 +1,120 @@
+"""The reconstruction contract shared by every method.
+
+``reconstruct(case, method, out_dir)`` runs a method on a ``Case`` and writes
+    OUT/vol_pred.npy   float32 [x, y, z], same shape, axis order and units as vol_gt.npy
+    OUT/metrics.json   method, options, wall-clock seconds, psnr_3d / ssim_3d (with a
+                       ground truth), what the data set simulated, variant and machine
+    OUT/slices.png     central orthogonal slices: prediction, ground truth, |error|
+A method is a function ``(case, **options) -> np.ndarray [x, y, z]``; unknown options raise.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .case import Case
+
+# name -> "module:function"; imported on use so that one method's import cost (or a
+# missing optional dependency) never affects the others.
+METHODS: dict = {
+    "fdk": "mi_grg.fdk:reconstruct_fdk",
+    "sart": "mi_grg.iterative:reconstruct_sart",
+    "asd-pocs": "mi_grg.iterative:reconstruct_asd_pocs",
+}
+
+
+def available_methods() -> list:
+    return sorted(METHODS)
+
+
+def get_method(name: str):
+    """The callable registered under ``name``."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; choose one of {available_methods()}")
+    target = METHODS[name]
+    if callable(target):
+        return target
+    module, func = target.split(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def register_method(name: str, func) -> None:
+    """Add a method (a callable ``(case, **options) -> [x, y, z]``) under ``name``."""
+    if not callable(func):
+        raise TypeError("func must be callable")
+    METHODS[name] = func
+
+
+def machine_info() -> dict:
+    import mitsuba as mi
+    import drjit as dr
+    return {"variant": mi.variant(), "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "python": platform.python_version()}
+
+
+def score(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """3-D PSNR / SSIM in the R2-Gaussian convention (data range 1)."""
+    from .metrics import psnr_3d, ssim_3d
+    return {"psnr_3d": float(psnr_3d(pred, gt)), "ssim_3d": float(ssim_3d(pred, gt))}
+
+
+def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **options):
+    """Run ``method`` on ``case`` (a Case or a data-set directory).
+
+    Returns (volume [x, y, z] float32, metrics dict). Writes the contract's files when
+    ``out_dir`` is given.
+    """
+    if not isinstance(case, Case):
+        from .dataset import load_case
+        case = load_case(case)
+    func = get_method(method)
+    t0 = time.perf_counter()
+    vol = func(case, **options)
+    seconds = time.perf_counter() - t0
+    vol = np.asarray(vol, dtype=np.float32)
+    expected = tuple(case.geometry.nVoxel)
+    if vol.shape != expected:
+        raise RuntimeError(f"method {method!r} returned shape {vol.shape}, expected nVoxel "
+                           f"[x, y, z] = {expected}")
+    if not np.all(np.isfinite(vol)):
+        raise RuntimeError(f"method {method!r} returned NaN/Inf voxels")
+    metrics = {"method": method, "options": options, "seconds": seconds,
+               "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
+               "data": case.info, "machine": machine_info()}
+    if case.vol_gt is not None:
+        metrics.update(score(vol, case.vol_gt))
+    if out_dir is not None:
+        write_outputs(out_dir, vol, metrics, case.vol_gt)
+    return vol, metrics
+
+
+def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None) -> Path:
+    """Write vol_pred.npy, metrics.json and slices.png into ``out_dir``."""
+    from .plotting import slice_montage
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "vol_pred.npy", vol.astype(np.float32))
+    with open(out / "metrics.json", "w") as f:
+        json.dump(metrics, f, indent=2, default=_json_default)
+    title = metrics.get("method", "")
+    if "psnr_3d" in metrics:
+        title += f"   PSNR {metrics['psnr_3d']:.2f} dB   SSIM {metrics['ssim_3d']:.3f}"
+    slice_montage(out / "slices.png", vol, vol_gt, title=title)
+    return out
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"cannot write {type(o).__name__} to JSON")

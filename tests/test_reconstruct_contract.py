@@ -1,0 +1,48 @@
+"""The reconstruction contract: files, shapes, units and metrics of every method's output."""
+import json
+
+import numpy as np
+import pytest
+
+from mi_grg.case import Case
+from mi_grg.reconstruct import get_method, reconstruct, register_method
+
+
+def _case(small_cone_geometry, rng):
+    geo = small_cone_geometry
+    gt = rng.uniform(0, 1, geo.nVoxel).astype(np.float32)
+    train = rng.uniform(0, 1, geo.projection_shape).astype(np.float32)
+    return Case(geometry=geo, train=train, vol_gt=gt, info={"phantom": "random"})
+
+
+def test_outputs_follow_the_contract(tmp_path, small_cone_geometry, rng):
+    case = _case(small_cone_geometry, rng)
+    noise = rng.normal(0, 0.1, case.vol_gt.shape).astype(np.float32)
+    register_method("gt-plus-noise", lambda c, scale=1.0: c.vol_gt + scale * noise)
+    vol, metrics = reconstruct(case, "gt-plus-noise", tmp_path, scale=0.5)
+    pred = np.load(tmp_path / "vol_pred.npy")
+    assert pred.shape == case.vol_gt.shape and pred.dtype == np.float32
+    np.testing.assert_array_equal(pred, vol)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    mse = np.mean((0.5 * noise.astype(np.float64)) ** 2)
+    assert saved["psnr_3d"] == pytest.approx(10 * np.log10(1 / mse), rel=1e-5)
+    assert 0 < saved["ssim_3d"] < 1
+    assert saved["method"] == "gt-plus-noise" and saved["options"] == {"scale": 0.5}
+    assert saved["data"] == {"phantom": "random"} and saved["seconds"] >= 0
+    assert "variant" in saved["machine"]
+    assert (tmp_path / "slices.png").stat().st_size > 1000
+
+
+def test_wrong_shape_and_nan_are_caught(small_cone_geometry, rng):
+    case = _case(small_cone_geometry, rng)
+    register_method("bad-shape", lambda c: np.zeros((3, 3, 3)))
+    with pytest.raises(RuntimeError, match="nVoxel"):
+        reconstruct(case, "bad-shape")
+    register_method("nan", lambda c: np.full(c.geometry.nVoxel, np.nan))
+    with pytest.raises(RuntimeError, match="NaN"):
+        reconstruct(case, "nan")
+
+
+def test_unknown_method_lists_the_valid_ones():
+    with pytest.raises(ValueError, match="fdk"):
+        get_method("fbk")
