@@ -22,5 +22,26 @@ set_variant(_requested)
 
 from .geometry import Geometry  # noqa: E402
 
+# Public names, imported on first use so that `import mi_grg` stays light.
+_LAZY = {
+    "Case": "mi_grg.case",
+    "Gaussians": "mi_grg.gaussians",
+    "load_case": "mi_grg.dataset",
+    "save_case": "mi_grg.dataset",
+    "DatasetError": "mi_grg.dataset",
+    "reconstruct": "mi_grg.methods",
+    "register_method": "mi_grg.methods",
+    "metrics": "mi_grg.metrics",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+        module = importlib.import_module(_LAZY[name])
+        return module if module.__name__ == f"mi_grg.{name}" else getattr(module, name)
+    raise AttributeError(f"module 'mi_grg' has no attribute {name!r}")
+
+
 __all__ = ["Geometry", "LLVMNotFoundError", "available_variants", "set_variant", "variant",
-           "__version__"]
+           "__version__", *_LAZY]

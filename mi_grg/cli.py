@@ -61,7 +61,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .reconstruct import reconstruct
+    from .methods import reconstruct
     options = _parse_options(args.option)
     if args.config:
         options["config"] = args.config
@@ -82,7 +82,7 @@ def cmd_render(args) -> int:
 
 def cmd_demo(args) -> int:
     """Simulate a noisy 25-view Shepp-Logan scan and reconstruct it with each method."""
-    from .reconstruct import reconstruct
+    from .methods import reconstruct
     out = Path(args.out)
     data = out / "shepp_64"
     sim = argparse.Namespace(scene=None, phantom="shepp", n=args.n, det=args.det, views=25,

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mi_grg.case import Case
-from mi_grg.reconstruct import get_method, reconstruct, register_method
+from mi_grg.methods import get_method, reconstruct, register_method
 
 
 def _case(small_cone_geometry, rng):

@@ -1,0 +1,64 @@
+"""Training configs: presets, XML files, overrides, and rejection of unknown keys."""
+import pytest
+
+from mi_grg.config import (ConfigError, PRESETS, TrainConfig, make_config, read_config_xml,
+                           write_config_xml)
+
+
+def test_paper_defaults():
+    c = make_config("gr")
+    assert (c.k, c.sigma_d, c.lambda_lap, c.lambda_g, c.lambda_ssim, c.lambda_tv) == \
+        (6, 3.0, 8e-4, 1e-4, 0.25, 0.05)
+    assert (c.lr_position, c.lr_density, c.lr_scale, c.lr_rotation) == (2e-4, 1e-2, 5e-3, 1e-3)
+    assert c.use_pga and c.use_graph_field and c.n_points == 50000
+
+
+def test_r2_preset_switches_every_graph_component_off():
+    c = make_config("r2")
+    assert not c.use_pga and not c.use_graph_field and c.lambda_lap == 0 and c.sigma_d == 0
+
+
+def test_file_round_trip_and_precedence(tmp_path):
+    base = make_config("gr", k=7, lambda_tv=0.1, monitor_3d=True)
+    path = tmp_path / "cfg.xml"
+    write_config_xml(base, path, method="gr")
+    assert make_config("gr", path) == base
+    # command-line override beats the file
+    assert make_config("gr", path, k=5).k == 5
+
+
+@pytest.mark.parametrize("xml, match", [
+    ('<training><integer name="kk" value="6"/></training>', "did you mean 'k'"),
+    ('<training><float name="k" value="6"/></training>', "integer"),
+    ('<training><integer name="k" value="6"/><integer name="k" value="7"/></training>', "twice"),
+    ('<training><boolean name="use_pga" value="yes"/></training>', "bool"),
+    ('<config><integer name="k" value="6"/></config>', "<training>"),
+    ('<training colour="red"/>', "colour"),
+    ('<training method="r2"/>', "not 'gr'"),
+    ('<training><float name="lambda_tv" value="nan"/></training>', "finite"),
+    ('<training><float name="lambda_tv" value="-1"/></training>', "lambda_tv"),
+])
+def test_bad_files_name_the_problem(tmp_path, xml, match):
+    path = tmp_path / "bad.xml"
+    path.write_text(xml)
+    with pytest.raises(ConfigError, match=match):
+        make_config("gr", path)
+
+
+def test_bad_overrides_and_methods():
+    with pytest.raises(ConfigError, match="lambda_lap"):
+        make_config("gr", lamda_lap=1.0)
+    with pytest.raises(ConfigError, match="presets"):
+        make_config("gr2")
+    with pytest.raises(ConfigError, match="integer|int"):
+        make_config("gr", k=2.5)
+
+
+def test_shipped_configs_are_complete(tmp_path):
+    import pathlib
+    root = pathlib.Path(__file__).resolve().parents[1] / "scenes"
+    for method in PRESETS:
+        file_method, values = read_config_xml(root / f"{method}_default.xml")
+        assert file_method == method
+        assert set(values) == set(TrainConfig.__dataclass_fields__)
+        assert make_config(method, root / f"{method}_default.xml") == make_config(method)
