@@ -5,11 +5,15 @@
     OUT/metrics.json   method, options, wall-clock seconds, psnr_3d / ssim_3d (with a
                        ground truth), what the data set simulated, variant and machine
     OUT/slices.png     central orthogonal slices: prediction, ground truth, |error|
-A method is a function ``(case, **options) -> np.ndarray [x, y, z]``; unknown options raise.
+A method is a function ``(case, **options) -> np.ndarray [x, y, z]`` or
+``-> (np.ndarray, info dict)``; unknown options raise. A method that takes an ``out_dir``
+keyword gets the output directory (for checkpoints and logs); ``info`` lands in
+metrics.json under "method_info".
 """
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
 import os
 import platform
@@ -26,6 +30,8 @@ METHODS: dict = {
     "fdk": "mi_grg.fdk:reconstruct_fdk",
     "sart": "mi_grg.iterative:reconstruct_sart",
     "asd-pocs": "mi_grg.iterative:reconstruct_asd_pocs",
+    "r2": "mi_grg.train:reconstruct_r2",
+    "gr": "mi_grg.train:reconstruct_gr",
 }
 
 
@@ -75,9 +81,12 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
         from .dataset import load_case
         case = load_case(case)
     func = get_method(method)
+    if out_dir is not None and "out_dir" in inspect.signature(func).parameters:
+        options = {**options, "out_dir": str(out_dir)}
     t0 = time.perf_counter()
-    vol = func(case, **options)
+    result = func(case, **options)
     seconds = time.perf_counter() - t0
+    vol, info = result if isinstance(result, tuple) else (result, None)
     vol = np.asarray(vol, dtype=np.float32)
     expected = tuple(case.geometry.nVoxel)
     if vol.shape != expected:
@@ -88,6 +97,8 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
                "data": case.info, "machine": machine_info()}
+    if info is not None:
+        metrics["method_info"] = info
     if case.vol_gt is not None:
         metrics.update(score(vol, case.vol_gt))
     if out_dir is not None:

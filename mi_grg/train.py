@@ -1,0 +1,438 @@
+"""GR-Gaussian / R2-Gaussian training: the loop that ties the components together.
+
+    FDK of the fitting views -> De-Init (or plain FDK init for R2) -> per iteration: one
+    view's projection loss (L1 + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
+    block + lambda_lap graph Laplacian -> Adam -> PGA densification every 100 iterations
+    (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
+    early stop, keeping the best state.
+
+Every component is switched by ``TrainConfig`` (``mi_grg.config``), so one loop runs
+R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
+Runs write checkpoints that ``resume=True`` continues from: an interrupted run loses at
+most ``checkpoint_every`` iterations.
+
+Units: the loop works in the case's units (R2-Gaussian's normalised scene, volume in
+[-1, 1]^3, when the case was loaded with rescaling); densities are never rescaled.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .case import Case
+from .config import TrainConfig, make_config
+from .early_stop import EarlyStopper
+from .gaussians import Gaussians
+
+LOG_FIELDS = ("iteration", "seconds", "loss", "heldout_psnr", "psnr_3d", "n_gaussians")
+
+
+def iteration_rule(geometry) -> int:
+    """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
+
+    30000 x (max(nVoxel) / 256), at least 1500: 64^3 -> 7500, 128^3 -> 15000. The
+    schedule (densification window, eval interval) scales with it (``_scaled``).
+    """
+    return max(1500, int(round(30000 * max(geometry.nVoxel) / 256)))
+
+
+def _scaled(cfg: TrainConfig, iterations: int) -> dict:
+    """Densification window and eval/checkpoint intervals, scaled from the paper's 30k."""
+    f = iterations / 30000.0
+    return {"densify_start": max(1, int(cfg.densify_start * f)),
+            "densify_stop": max(2, int(cfg.densify_stop * f)),
+            "densify_interval": max(1, int(cfg.densify_interval * max(f, 0.25))),
+            "eval_every": max(50, int(cfg.eval_every * max(f, 0.25)))}
+
+
+@dataclass
+class TrainState:
+    """Everything a checkpoint holds (explicit, so that resuming is exact)."""
+    iteration: int
+    raw: dict
+    rng: dict
+    log: list = field(default_factory=list)
+    best_raw: dict | None = None
+    stopper: dict | None = None
+    stopped_by: str | None = None
+    seconds: float = 0.0
+
+
+# ---------------------------------------------------------------------------- helpers
+def _raw_to_numpy(raw: dict) -> dict:
+    out = {}
+    for k, v in raw.items():
+        if dr.size_v(v) == 0:  # scalar-like
+            out[k] = np.asarray(v)
+        elif hasattr(v, "__len__") and dr.depth_v(v) > 1 and dr.size_v(v) > 1:
+            out[k] = np.stack([np.asarray(c) for c in v], -1)
+        else:
+            out[k] = np.asarray(v)
+    return out
+
+
+_RAW_TYPES = {"positions": "Point3f", "raw_scales": "Vector3f", "raw_rotations": "Vector4f",
+              "raw_densities": "Float"}
+
+
+def _raw_from_numpy(arrs: dict) -> dict:
+    out = {}
+    for k, t in _RAW_TYPES.items():
+        a = np.asarray(arrs[k], np.float32)
+        cls = getattr(mi, t)
+        out[k] = cls(a) if t == "Float" else cls(*[mi.Float(a[:, i]) for i in range(a.shape[1])])
+    return out
+
+
+def _atomic_savez(path: Path, **arrays) -> None:
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)  # never leaves a half-written checkpoint behind
+
+
+def save_checkpoint(path, state: TrainState, optimizer, densifier, cfg: TrainConfig) -> None:
+    arrays = {f"raw__{k}": v for k, v in _raw_to_numpy(state.raw).items()}
+    if state.best_raw is not None:
+        arrays.update({f"best__{k}": v for k, v in _raw_to_numpy(state.best_raw).items()})
+    opt = optimizer.state_dict()
+    for name, st in opt.get("state", {}).items():
+        arrays[f"adam_m__{name}"] = st["m"]
+        arrays[f"adam_v__{name}"] = st["v"]
+    if densifier.grad_accum is not None:
+        arrays["dens_grad"] = np.asarray(densifier.grad_accum)
+        arrays["dens_count"] = np.asarray(densifier.view_count)
+    meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
+            "stopper": state.stopper, "stopped_by": state.stopped_by,
+            "seconds": state.seconds, "config": cfg.to_dict(),
+            "adam_steps": {n: st["step"] for n, st in opt.get("state", {}).items()}}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    _atomic_savez(Path(path), **arrays)
+
+
+def load_checkpoint(path, optimizer, densifier, cfg: TrainConfig) -> TrainState:
+    with np.load(path) as f:
+        meta = json.loads(bytes(f["meta"]).decode())
+        if meta["config"] != cfg.to_dict():
+            changed = sorted(k for k in meta["config"] if meta["config"][k] != cfg.to_dict()[k])
+            raise ValueError(f"checkpoint {path} was made with a different config "
+                             f"(differs in {changed}); resume with the same options")
+        raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
+        best = (_raw_from_numpy({k: f[f"best__{k}"] for k in _RAW_TYPES})
+                if "best__positions" in f.files else None)
+        opt_state = {}
+        for name, step in meta["adam_steps"].items():
+            opt_state[name] = {"m": f[f"adam_m__{name}"], "v": f[f"adam_v__{name}"],
+                               "step": step}
+        if opt_state:
+            optimizer.load_state_dict({"state": opt_state}, like=raw)
+        if "dens_grad" in f.files:
+            densifier.grad_accum = mi.Float(f["dens_grad"])
+            densifier.view_count = mi.Float(f["dens_count"])
+    return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
+                      best_raw=best, stopper=meta["stopper"], stopped_by=meta["stopped_by"],
+                      seconds=meta["seconds"])
+
+
+def write_log(out: Path, log: list) -> None:
+    with open(out / "train_log.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        w.writeheader()
+        for row in log:
+            w.writerow({k: row.get(k, "") for k in LOG_FIELDS})
+    plot_log(out / "train_log.png", log)
+
+
+def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
+    """Loss, held-out PSNR (and 3-D PSNR when known) and Gaussian count per iteration."""
+    from .plotting import _agg
+    plt = _agg()
+    it = [r["iteration"] for r in log]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
+    ax[0].semilogy(it, [r["loss"] for r in log], lw=0.8)
+    ax[0].set_title("training loss")
+    ev = [r for r in log if r.get("heldout_psnr") not in (None, "")]
+    if ev:
+        ax[1].plot([r["iteration"] for r in ev], [r["heldout_psnr"] for r in ev], "o-",
+                   label="held-out views (2-D)")
+    ev3 = [r for r in log if r.get("psnr_3d") not in (None, "")]
+    if ev3:
+        ax1b = ax[1].twinx()
+        ax1b.plot([r["iteration"] for r in ev3], [r["psnr_3d"] for r in ev3], "s--",
+                  color="tab:red", label="3-D vs ground truth")
+        ax1b.set_ylabel("3-D PSNR (dB)", color="tab:red")
+    if stop_iteration is not None:
+        ax[1].axvline(stop_iteration, color="k", ls=":", label="best / stop")
+    ax[1].set_title("PSNR (dB)")
+    ax[1].legend(loc="lower right", fontsize=8)
+    ax[2].plot(it, [r["n_gaussians"] for r in log], lw=0.8)
+    ax[2].set_title("Gaussians")
+    for a in ax:
+        a.set_xlabel("iteration")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------- training
+class Trainer:
+    """One training run on a case. Construct, then ``run()``; see the module docstring."""
+
+    def __init__(self, case: Case, cfg: TrainConfig, out_dir=None, progress: bool = True,
+                 resume: bool = False):
+        from .densify import DensifyConfig, PGADensifier
+        from .optim import Adam
+        self.case, self.cfg, self.progress = case, cfg, progress
+        self.out = Path(out_dir) if out_dir is not None else None
+        if self.out is not None:
+            self.out.mkdir(parents=True, exist_ok=True)
+        geo = case.geometry
+        self.iterations = cfg.iterations or iteration_rule(geo)
+        sched = _scaled(cfg, self.iterations) if not cfg.iterations else {
+            k: getattr(cfg, k) for k in ("densify_start", "densify_stop", "densify_interval",
+                                         "eval_every")}
+        self.sched = sched
+        # Views: hold out every n-th one for early stopping (never trained on).
+        n = geo.n_views
+        held = (np.arange(n) % cfg.holdout_every == 0) if cfg.holdout_every else np.zeros(n, bool)
+        if held.all():
+            raise ValueError("holdout_every leaves no training views")
+        self.fit_idx, self.held_idx = np.flatnonzero(~held), np.flatnonzero(held)
+        self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
+                        for i in range(n)]
+        dcfg = DensifyConfig.from_train_config(cfg)
+        dcfg = DensifyConfig(**{**dcfg.to_dict(), "start": sched["densify_start"],
+                                "stop": sched["densify_stop"],
+                                "interval": sched["densify_interval"]})
+        self.densifier = PGADensifier(dcfg, seed=cfg.seed)
+        self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
+        self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
+        self.extent = cfg.extent or None
+        ckpt = self.out / "checkpoint.npz" if self.out is not None else None
+        if resume and ckpt is not None and ckpt.exists():
+            self.state = load_checkpoint(ckpt, self.optimizer, self.densifier, cfg)
+            self.init_info = {"resumed_from": self.state.iteration}
+        else:
+            if resume and ckpt is not None:
+                print(f"no checkpoint in {self.out}; starting from scratch")
+            g, self.init_info = self._initial_gaussians()
+            self.state = TrainState(iteration=0, raw=g.to_raw(),
+                                    rng=np.random.default_rng(cfg.seed).bit_generator.state)
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = self.state.rng
+        self.stopper = EarlyStopper(drop=cfg.stop_drop)
+        if self.state.stopper:
+            self.stopper.load_state(self.state.stopper)
+        self.graph = None
+
+    # ------------------------------------------------------------------ pieces
+    def _initial_gaussians(self):
+        from .fdk import fdk
+        from .init import init_gaussians
+        geo, cfg = self.case.geometry, self.cfg
+        fit_geo = geo.with_angles(geo.angles[self.fit_idx])
+        vol = fdk(self.case.train[self.fit_idx], fit_geo)
+        info = {}
+        g = init_gaussians(np.clip(vol, 0, None), geo, n_points=cfg.n_points, tau=cfg.init_tau,
+                           sigma_d=cfg.sigma_d or None, density_rescale=cfg.density_rescale,
+                           seed=cfg.seed, info=info)
+        return g, info
+
+    def _rebuild_graph(self, positions):
+        from .graph import build_graph
+        self.graph = build_graph(dr.detach(positions), k=self.cfg.k,
+                                 s=self.cfg.graph_s or None) if self.uses_graph else None
+
+    def _density_scale(self):
+        if self.graph is None or not self.cfg.use_graph_field:
+            return None
+        from .graph import graph_density_scale
+        return graph_density_scale(self.graph)
+
+    def _project(self, g, angles, density_scale, means2d=None):
+        from .projector import project_dr
+        return project_dr(g, self.case.geometry, angles=angles, extent=self.extent,
+                          density_scale=density_scale, means2d=means2d)
+
+    def _heldout_psnr(self, raw) -> float | None:
+        if len(self.held_idx) == 0:
+            return None
+        from .metrics import psnr_proj
+        with dr.suspend_grad():
+            g = Gaussians.from_raw(raw)
+            img = self._project(g, self.case.geometry.angles[self.held_idx],
+                                self._density_scale())
+            pred = np.asarray(img.numpy())
+        return float(psnr_proj(pred, self.case.train[self.held_idx]))
+
+    def volume(self, raw=None) -> np.ndarray:
+        """The reconstruction [x, y, z]: the Gaussian field voxelised at voxel centres."""
+        from .voxelizer import voxelize
+        raw = self.state.raw if raw is None else raw
+        g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
+        if self.uses_graph:
+            self._rebuild_graph(g.positions)
+        return voxelize(g, self.case.geometry, extent=self.extent,
+                        density_scale=self._density_scale())
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> dict:
+        from tqdm import tqdm
+
+        from .graph import laplacian_loss, mean_abs_density_difference
+        from .losses import dssim, l1, tv_3d
+        cfg, geo, st = self.cfg, self.case.geometry, self.state
+        raw = {k: dr.detach(v) for k, v in st.raw.items()}
+        for v in raw.values():
+            dr.enable_grad(v)
+        self._rebuild_graph(raw["positions"])
+        nvox = np.asarray(geo.nVoxel)
+        block = np.minimum(cfg.tv_block, nvox)
+        nv, nu = geo.nDetector
+        # d/d(ndc) = (n/2) d/d(pixel): the densification threshold is in NDC units (R2).
+        ndc = mi.Vector2f(nu / 2.0, nv / 2.0)
+        t_start = time.perf_counter() - st.seconds
+        bar = tqdm(total=self.iterations, initial=st.iteration, disable=not self.progress,
+                   desc=f"train ({'graph' if self.uses_graph else 'no graph'})",
+                   dynamic_ncols=True, mininterval=1.0)
+        last_psnr = None
+        loss_value = float("nan")
+        while st.iteration < self.iterations and st.stopped_by is None:
+            it = st.iteration + 1
+            view = int(self.rng.choice(self.fit_idx))
+            g = Gaussians.from_raw(raw)
+            ds = self._density_scale()
+            n = len(g)
+            means2d = dr.zeros(mi.Vector2f, n)
+            dr.enable_grad(means2d)
+            img = self._project(g, geo.angles[view:view + 1], ds, means2d)
+            target = self.targets[view]
+            pred = mi.TensorXf(img.array, (nv, nu))
+            loss = l1(pred, target)
+            if cfg.lambda_ssim > 0:
+                loss = loss + cfg.lambda_ssim * dssim(pred, target)
+            if cfg.lambda_tv > 0:
+                start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
+                from .voxelizer import voxelize_dr
+                vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.extent,
+                                  density_scale=ds)
+                loss = loss + cfg.lambda_tv * tv_3d(vol)
+            if cfg.lambda_lap > 0 and self.graph is not None:
+                loss = loss + cfg.lambda_lap * laplacian_loss(self.graph, g.densities)
+            dr.backward(loss)
+            grad2d = dr.grad(means2d)
+            gnorm = dr.norm(mi.Vector2f(grad2d.x / ndc.x, grad2d.y / ndc.y))
+            self.densifier.accumulate(gnorm, visible=gnorm > 0)
+            loss_value = float(loss[0]) if dr.width(loss) else float(loss)
+            if not math.isfinite(loss_value):
+                raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
+            raw = self.optimizer.step(raw)
+            if self.densifier.is_densify_iteration(it):
+                term = None
+                if cfg.use_pga and self.graph is not None:
+                    term = mean_abs_density_difference(self.graph,
+                                                       dr.detach(Gaussians.from_raw(raw).densities))
+                raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
+                                                bbox=geo.bbox())
+                self._rebuild_graph(raw["positions"])
+            st.iteration, st.raw = it, raw
+            row = {"iteration": it, "seconds": round(time.perf_counter() - t_start, 3),
+                   "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
+            if it % self.sched["eval_every"] == 0 or it == self.iterations:
+                last_psnr = self._heldout_psnr(raw)
+                row["heldout_psnr"] = last_psnr
+                if cfg.monitor_3d and self.case.vol_gt is not None:
+                    from .metrics import psnr_3d
+                    row["psnr_3d"] = float(psnr_3d(self.volume(raw), self.case.vol_gt))
+                watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr
+                if watched is not None:
+                    if cfg.monitor_3d:
+                        self.stopper.label = "3-D PSNR vs ground truth (research option)"
+                    verdict = self.stopper.update(it, watched)
+                    if verdict == "improved":
+                        st.best_raw = {k: dr.detach(v) for k, v in raw.items()}
+                    elif verdict == "stop":
+                        st.stopped_by = self.stopper.reason
+                st.stopper = self.stopper.state()
+            st.log.append(row)
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss_value:.4f}", N=row["n_gaussians"],
+                            heldout=f"{last_psnr:.2f}" if last_psnr is not None else "-",
+                            refresh=False)
+            st.seconds = time.perf_counter() - t_start
+            st.rng = self.rng.bit_generator.state
+            if self.out is not None and (it % self.cfg.checkpoint_every == 0
+                                         or st.stopped_by is not None):
+                save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer,
+                                self.densifier, cfg)
+        bar.close()
+        if st.stopped_by is None:
+            st.stopped_by = (f"iteration budget ({self.iterations}) reached"
+                             if st.iteration >= self.iterations else "interrupted")
+        final = st.best_raw if st.best_raw is not None else st.raw
+        if cfg.refit_iterations and st.best_raw is not None and "budget" not in st.stopped_by:
+            final = self._refit(final, cfg.refit_iterations)
+        st.raw = final
+        summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
+                   "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
+                   "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
+                                         else None),
+                   "n_gaussians": dr.width(final["raw_densities"]),
+                   "train_seconds": st.seconds, "schedule": self.sched,
+                   "held_out_views": self.held_idx.tolist(), "init": self.init_info}
+        if self.out is not None:
+            save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)
+            write_log(self.out, st.log)
+            plot_log(self.out / "train_log.png", st.log, self.stopper.best_iteration
+                     if self.stopper.best_iteration > 0 else None)
+            g = Gaussians.from_raw(final)
+            g.save_npz(self.out / "gaussians.npz")
+            from .ply import save_ply
+            save_ply(g, self.out / "gaussians.ply")
+        return summary
+
+    def _refit(self, raw, n_iter: int):
+        """Brief refit on all views (held-out ones included) after early stopping."""
+        from .losses import dssim, l1
+        geo, cfg = self.case.geometry, self.cfg
+        nv, nu = geo.nDetector
+        raw = {k: dr.detach(v) for k, v in raw.items()}
+        for v in raw.values():
+            dr.enable_grad(v)
+        for _ in range(n_iter):
+            view = int(self.rng.integers(0, geo.n_views))
+            g = Gaussians.from_raw(raw)
+            img = self._project(g, geo.angles[view:view + 1], self._density_scale())
+            pred = mi.TensorXf(img.array, (nv, nu))
+            loss = l1(pred, self.targets[view]) + cfg.lambda_ssim * dssim(pred, self.targets[view])
+            dr.backward(loss)
+            raw = self.optimizer.step(raw)
+        return raw
+
+
+# ---------------------------------------------------------------------------- methods
+def _train_method(method: str):
+    def run(case: Case, out_dir=None, config=None, resume: bool = False,
+            progress: bool = True, **overrides):
+        cfg = make_config(method, config, **overrides)
+        trainer = Trainer(case, cfg, out_dir=out_dir, progress=progress, resume=resume)
+        summary = trainer.run()
+        summary["config"] = cfg.to_dict()
+        return trainer.volume(), summary
+    run.__name__ = f"reconstruct_{method}"
+    run.__doc__ = (f"{method} training under the reconstruction contract: options are "
+                   "TrainConfig fields (mi_grg.config), config (an XML file), resume, "
+                   "progress, out_dir.")
+    return run
+
+
+reconstruct_gr = _train_method("gr")
+reconstruct_r2 = _train_method("r2")
