@@ -32,6 +32,16 @@ _LAZY = {
     "reconstruct": "mi_grg.methods",
     "register_method": "mi_grg.methods",
     "metrics": "mi_grg.metrics",
+    "make_phantom": "mi_grg.phantoms",
+    "EllipsoidPhantom": "mi_grg.phantoms",
+    "PHANTOMS": "mi_grg.phantoms",
+    "NoiseModel": "mi_grg.noise",
+    "simulate_case": "mi_grg.simulate",
+    "default_geometry": "mi_grg.simulate",
+    "load_scan": "mi_grg.scene",
+    "Scan": "mi_grg.scene",
+    "write_scan_xml": "mi_grg.scene",
+    "load_mitsuba_scene": "mi_grg.scene",
 }
 
 

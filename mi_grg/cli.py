@@ -44,6 +44,8 @@ def cmd_simulate(args) -> int:
             if scan.noise else None
         if args.no_noise:
             noise = None
+        seed = scan.object.get("seed", args.seed)
+        scene_info = scan.info()
     else:
         geometry = default_geometry(n=args.n or 64, det=args.det or 96,
                                     views=args.views or 25, mode=args.mode or "cone")
@@ -51,8 +53,11 @@ def cmd_simulate(args) -> int:
         test_angles = default_test_angles(test_views) if test_views else np.zeros(0)
         phantom = args.phantom or "shepp"
         noise = None if args.no_noise else NoiseModel(I0=args.I0, electronic_std=args.electronic_std)
+        seed, scene_info = args.seed, None
     t0 = time.perf_counter()
-    case = simulate_case(phantom, geometry, test_angles, noise, seed=args.seed)
+    case = simulate_case(phantom, geometry, test_angles, noise, seed=seed)
+    if scene_info is not None:
+        case.info["scene"] = scene_info
     out = save_case(case, args.out, exr=args.exr)
     print(f"wrote {out} ({geometry.n_views} train / {len(test_angles)} test views, "
           f"{'x'.join(map(str, geometry.nVoxel))} volume, noise "
