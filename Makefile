@@ -24,6 +24,8 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/projector.py
 	$(PY) bench/baselines.py
+	$(PY) bench/voxelizer.py
+	$(PY) bench/graph.py
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

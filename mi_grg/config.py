@@ -46,7 +46,7 @@ class TrainConfig:
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field
     k: int = 6                     # neighbours in the kNN graph
     graph_s: float = 0.0           # weight scale s in exp(-d^2 / s); 0: automatic
-    lambda_lap: float = 8e-4       # graph Laplacian loss weight
+    lambda_lap: float = 8e-4       # graph Laplacian weight (raw sum x 50k / N, see train)
     # --- PGA densification (Sec. 3.3.2)
     use_pga: bool = True           # graph term in the densification gradient
     lambda_g: float = 1e-4

@@ -33,6 +33,10 @@ from .config import TrainConfig, make_config
 from .early_stop import EarlyStopper
 from .gaussians import Gaussians
 
+# The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
+# we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
+REFERENCE_N = 50000
+
 LOG_FIELDS = ("iteration", "seconds", "loss", "heldout_psnr", "psnr_3d", "n_gaussians")
 
 
@@ -326,7 +330,8 @@ class Trainer:
                                   density_scale=ds)
                 loss = loss + cfg.lambda_tv * tv_3d(vol)
             if cfg.lambda_lap > 0 and self.graph is not None:
-                loss = loss + cfg.lambda_lap * laplacian_loss(self.graph, g.densities)
+                lap = laplacian_loss(self.graph, g.densities, normalise=False)
+                loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap
             dr.backward(loss)
             grad2d = dr.grad(means2d)
             gnorm = dr.norm(mi.Vector2f(grad2d.x / ndc.x, grad2d.y / ndc.y))

@@ -1,0 +1,137 @@
+"""Benchmark: mi_grg.graph kNN + mutual edges vs scipy's cKDTree, same run, same points.
+
+    .venv/bin/python bench/graph.py [--sizes 10000 50000 200000] [--repeats 5] [--k 6]
+
+Times (seconds, wall clock, medians of --repeats runs after one warm-up run that pays the
+JIT compilation) for
+  ours:    graph.knn + graph.mutual_edges, results evaluated (dr.eval)
+  cKDTree: cKDTree(points) + query(k + 1) + NumPy mutual edges, float64, with
+           workers=1 (its default) and workers=-1 (all cores)
+on a uniform cloud in [0, 1]^3 and a clustered one (95% of the points in 4 tiny
+clusters of sigma 1e-4 .. 3e-3, 5% uniform outliers: Gaussians initialised from a CT
+volume look like this). Both results are checked equal (k-th distances) before timing.
+Writes docs/bench/graph.md and docs/bench/graph.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import mi_grg
+import drjit as dr
+import mitsuba as mi  # noqa: F401
+
+from mi_grg import graph as G
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def uniform(rng, n):
+    return rng.random((n, 3)).astype(np.float32)
+
+
+def clustered(rng, n):
+    nc = int(0.95 * n)
+    centres = rng.random((4, 3))
+    sigma = np.array([1e-4, 3e-4, 1e-3, 3e-3])
+    lab = rng.integers(0, 4, nc)
+    a = centres[lab] + rng.normal(size=(nc, 3)) * sigma[lab, None]
+    return np.concatenate([a, rng.random((n - nc, 3))]).astype(np.float32)
+
+
+def ours(P, k):
+    p = mi.Point3f(*[mi.Float(np.ascontiguousarray(P[:, a])) for a in range(3)])
+    dr.eval(p)
+    t = time.perf_counter()
+    idx, d2, stats = G.knn_with_stats(p, k)
+    src, dst = G.mutual_edges(idx, k)
+    dr.eval(idx, d2, src, dst)
+    return time.perf_counter() - t, np.asarray(d2).reshape(-1, k), dr.width(src), stats
+
+
+def reference(P, k, workers=1):
+    P64 = P.astype(np.float64)
+    t = time.perf_counter()
+    d, I = cKDTree(P64).query(P64, k + 1, workers=workers)
+    I = I[:, 1:]                     # self first (no duplicates in these clouds)
+    i = np.repeat(np.arange(len(P)), k)
+    j = I.reshape(-1)
+    back = (I[j] == i[:, None]).any(1)
+    keep = back & (i < j)
+    n_edges = int(keep.sum())
+    return time.perf_counter() - t, d[:, 1:] ** 2, n_edges
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 50_000, 200_000])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--k", type=int, default=6)
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench")
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(0)
+    rows = []
+    for cloud, gen in (("uniform", uniform), ("clustered", clustered)):
+        for n in args.sizes:
+            P = gen(rng, n)
+            t0, D, e_ours, stats = ours(P, args.k)          # warm-up (JIT compile)
+            _, Dref, e_ref = reference(P, args.k)
+            err = float(np.max(np.abs(D - Dref) / np.maximum(Dref, 1e-12)))
+            assert err < 1e-4 and e_ours == e_ref, (cloud, n, err, e_ours, e_ref)
+            t_ours = [ours(P, args.k)[0] for _ in range(args.repeats)]
+            t_ref = [reference(P, args.k)[0] for _ in range(args.repeats)]
+            t_all = [reference(P, args.k, workers=-1)[0] for _ in range(args.repeats)]
+            row = {"cloud": cloud, "n": n, "k": args.k, "edges": e_ours,
+                   "ours_s": statistics.median(t_ours), "ckdtree_s": statistics.median(t_ref),
+                   "ckdtree_all_cores_s": statistics.median(t_all),
+                   "ours_first_call_s": t0, "ours_runs": t_ours, "ckdtree_runs": t_ref,
+                   "max_rel_err_kth": err, "failed_certificates": stats["failed_certificates"],
+                   "levels": sorted(stats["start_levels"])}
+            row["ratio"] = row["ours_s"] / row["ckdtree_s"]
+            row["ratio_all_cores"] = row["ours_s"] / row["ckdtree_all_cores_s"]
+            rows.append(row)
+            print(f"{cloud:9s} N={n:7d}  ours {row['ours_s']:.3f} s  cKDTree "
+                  f"{row['ckdtree_s']:.3f} s (all cores {row['ckdtree_all_cores_s']:.3f} s)  "
+                  f"ours/cKDTree {row['ratio']:.2f} ({row['ratio_all_cores']:.2f})  "
+                  f"(first call {t0:.2f} s, {e_ours} edges)", flush=True)
+    env = {"variant": mi_grg.variant(), "drjit": dr.__version__, "cpus": os.cpu_count(),
+           "load_avg": os.getloadavg(), "machine": platform.processor() or platform.machine(),
+           "python": sys.version.split()[0], "repeats": args.repeats}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "graph.json").write_text(json.dumps({"env": env, "rows": rows}, indent=1))
+    lines = ["# Gaussian graph: kNN + mutual edges vs cKDTree", "",
+             "Generated by `bench/graph.py` (medians of "
+             f"{args.repeats} runs after a warm-up; k = {args.k}).", "",
+             f"Variant `{env['variant']}`, Dr.Jit {env['drjit']}, {env['cpus']} CPUs, "
+             f"load average at the end {env['load_avg'][0]:.1f} (other jobs shared the "
+             "machine; timings are noisy).", "",
+             "| cloud | N | ours (s) | cKDTree 1 thread (s) | ours / that | cKDTree all "
+             "cores (s) | ours / that | ours first call (s) | edges | start levels |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['cloud']} | {r['n']} | {r['ours_s']:.3f} | {r['ckdtree_s']:.3f} | "
+                     f"{r['ratio']:.2f} | {r['ckdtree_all_cores_s']:.3f} | "
+                     f"{r['ratio_all_cores']:.2f} | {r['ours_first_call_s']:.2f} | {r['edges']} | "
+                     f"{r['levels'][0]}..{r['levels'][-1]} |")
+    lines += ["", "ours = `knn` + `mutual_edges` (Dr.Jit LLVM backend, all cores); cKDTree = "
+              "build + query(k+1) (`workers=1` or `-1`) + vectorised NumPy mutual-edge test, "
+              "float64. Results were checked equal before timing. 'first call' is the warm-up "
+              "run; it compiles kernels only when Dr.Jit's on-disk kernel cache is cold. "
+              "`start levels` are the grid levels (cell side H / 2^r) points started on: "
+              "the clustered cloud (95% of points in 4 clusters of sigma 1e-4 .. 3e-3, 5% "
+              "uniform outliers) spans many.", ""]
+    (args.out / "graph.md").write_text("\n".join(lines))
+    print("wrote", args.out / "graph.md")
+
+
+if __name__ == "__main__":
+    main()
