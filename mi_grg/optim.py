@@ -179,8 +179,12 @@ class Adam:
             st.v = type(p)(dr.fma(st.v, b2, (1.0 - b2) * dr.square(g)))
             bc1 = 1.0 - b1 ** t
             bc2 = 1.0 - b2 ** t
-            denom = dr.sqrt(st.v) * (1.0 / math.sqrt(bc2)) + self.eps
-            new = type(p)(dr.detach(p) - (lr / bc1) * st.m / denom)
+            # Step-dependent scalars are opaque: as literals they would change the kernel
+            # (and force a recompilation) at every step.
+            step_size = dr.opaque(mi.Float, lr / bc1)
+            inv_bc2 = dr.opaque(mi.Float, 1.0 / math.sqrt(bc2))
+            denom = dr.sqrt(st.v) * inv_bc2 + self.eps
+            new = type(p)(dr.detach(p) - step_size * st.m / denom)
             dr.enable_grad(new)
             dr.eval(new, st.m, st.v)
             out[name] = new
