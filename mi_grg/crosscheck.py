@@ -239,17 +239,7 @@ def _load(scene) -> tuple:
         return gaussians, geometry
     from .scene import load_scan
     path = Path(scene)
-    # relative file names in the scene (the Gaussians .npz) resolve against its folder,
-    # as in mi.load_file
-    resolver = mi.file_resolver()
-    saved = [str(resolver[i]) for i in range(len(resolver))]
-    resolver.prepend(str(path.resolve().parent))
-    try:
-        scan = load_scan(path)
-    finally:
-        resolver.clear()
-        for p in saved:
-            resolver.append(p)
+    scan = load_scan(path)  # resolves relative file names against the scene's folder
     obj = scan.object
     if obj.get("type") != "gaussian_medium" or "filename" not in obj:
         raise ValueError(f"{path}: the render cross-check needs the scanned object "

@@ -397,11 +397,19 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
                 integrator=_node_dict(state, integrators[0]) if integrators else {},
                 other=[_node_dict(state, i) for i in top
                        if i not in sensors and i not in integrators])
+    # Relative file names inside the scene resolve against its folder, as in mi.load_file.
+    resolver = mi.file_resolver()
+    saved = [str(resolver[i]) for i in range(len(resolver))]
+    resolver.prepend(str(Path(path).resolve().parent))
     try:
         mi.parser.transform_all(config, state)
         scene = mi.parser.instantiate(config, state)
     except RuntimeError as e:
         raise ScanError(f"{path}: {_mitsuba_message(e)}") from None
+    finally:
+        resolver.clear()
+        for p in saved:
+            resolver.append(p)
     sensor = scene.sensors()[0]
     scan.geometry, scan.test_angles, scan.noise = (sensor.geometry, sensor.test_angles,
                                                    sensor.noise)
