@@ -38,6 +38,8 @@ _LAZY = {
     "NoiseModel": "mi_grg.noise",
     "simulate_case": "mi_grg.simulate",
     "default_geometry": "mi_grg.simulate",
+    "project": "mi_grg.projector",
+    "project_dr": "mi_grg.projector",
     "voxelize": "mi_grg.voxelizer",
     "voxelize_dr": "mi_grg.voxelizer",
     "save_ply": "mi_grg.ply",

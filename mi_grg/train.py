@@ -301,7 +301,8 @@ class Trainer:
         nvox = np.asarray(geo.nVoxel)
         block = np.minimum(cfg.tv_block, nvox)
         nv, nu = geo.nDetector
-        # d/d(ndc) = (n/2) d/d(pixel): the densification threshold is in NDC units (R2).
+        # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
+        # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
         ndc = mi.Vector2f(nu / 2.0, nv / 2.0)
         t_start = time.perf_counter() - st.seconds
         bar = tqdm(total=self.iterations, initial=st.iteration, disable=not self.progress,
@@ -334,7 +335,7 @@ class Trainer:
                 loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap
             dr.backward(loss)
             grad2d = dr.grad(means2d)
-            gnorm = dr.norm(mi.Vector2f(grad2d.x / ndc.x, grad2d.y / ndc.y))
+            gnorm = dr.norm(mi.Vector2f(grad2d.x * ndc.x, grad2d.y * ndc.y))
             self.densifier.accumulate(gnorm, visible=gnorm > 0)
             loss_value = float(loss[0]) if dr.width(loss) else float(loss)
             if not math.isfinite(loss_value):
