@@ -141,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", required=True)
     q.set_defaults(func=cmd_render)
 
+    from .experiments import add_experiment_parser
+    add_experiment_parser(sub)  # `experiment NAME --suite FILE --out DIR` and `report`
+
     d = sub.add_parser("demo", help="built-in example: simulate Shepp-Logan, reconstruct")
     d.add_argument("--out", default="out/demo")
     d.add_argument("--n", type=int, default=64)

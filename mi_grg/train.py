@@ -248,6 +248,15 @@ class Trainer:
         g = init_gaussians(np.clip(vol, 0, None), geo, n_points=cfg.n_points, tau=cfg.init_tau,
                            sigma_d=cfg.sigma_d or None, density_rescale=cfg.density_rescale,
                            seed=cfg.seed, info=info)
+        if cfg.use_graph_field:
+            # The graph-augmented field multiplies each kernel's density by 1 + sum_i w_ij
+            # (about 1 + k/2 e^-1 .. 1 + k); the init densities were calibrated for the plain
+            # field, so divide by that factor: the initial field is the same either way.
+            from .graph import build_graph, graph_density_scale
+            scale = graph_density_scale(build_graph(g.positions, k=cfg.k, s=cfg.graph_s or None))
+            g = g.replace(densities=g.densities / scale)
+            info["graph_field_init_divisor_mean"] = float(dr.mean(scale)[0]
+                                                          if dr.width(dr.mean(scale)) else 1.0)
         return g, info
 
     def _rebuild_graph(self, positions):

@@ -1,0 +1,699 @@
+"""The results report: markdown tables and plots from an experiments directory.
+
+    mi-grg report --out results/cpu --report docs/results.md
+
+Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.experiments``) and each run's
+``metrics.json`` / ``train_log.csv`` / ``progress_log.csv``; writes the markdown file and
+its PNGs under ``<report dir>/img/results/``. Only numbers found in those files appear in
+our tables; a missing or failed run shows as "—". The paper's numbers are transcribed from
+its tables and labelled as such (its own data, X-3D at 256^3 / 512^2, not comparable case by
+case).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+DASH = "—"
+CATS = ("HO", "BS", "AO")
+METHOD_ORDER = ("fdk", "sart", "asd-pocs", "r2", "gr")
+METHOD_NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS",
+                "r2": "R2-Gaussian (r2)", "gr": "GR-Gaussian (gr)"}
+
+# GR-Gaussian paper, Table 1 (25 views; X-3D data set HO/BS/AO/Average, RD = real-world
+# data set), PSNR (dB) / SSIM, transcribed from the .tex.
+PAPER_TABLE1 = {
+    "FDK": [(22.64, 0.319), (23.45, 0.296), (22.95, 0.336), (23.01, 0.317), (23.30, 0.335)],
+    "SART": [(29.58, 0.773), (32.37, 0.878), (31.48, 0.825), (31.14, 0.825), (31.52, 0.790)],
+    "ASD-POCS": [(29.42, 0.810), (31.40, 0.887), (30.58, 0.845), (30.47, 0.847),
+                 (31.32, 0.810)],
+    "NAF": [(32.05, 0.841), (34.36, 0.930), (35.34, 0.909), (33.92, 0.893), (32.92, 0.772)],
+    "SAX-NeRF": [(32.53, 0.858), (34.67, 0.940), (35.85, 0.917), (34.35, 0.905),
+                 (33.49, 0.793)],
+    "R2-GS": [(32.98, 0.881), (35.08, 0.944), (37.52, 0.945), (35.19, 0.922), (35.03, 0.837)],
+    "Ours (GR-Gaussian)": [(33.47, 0.891), (35.56, 0.952), (38.55, 0.955), (35.86, 0.933),
+                           (35.95, 0.858)],
+}
+# Table 2 (ablation; X-3D and real-world PSNR / SSIM).
+PAPER_TABLE2 = [("Baseline (R2-GS)", 35.20, 0.923, 35.28, 0.836),
+                ("+ De-Init", 35.61, 0.931, 35.90, 0.857),
+                ("+ PGA", 35.77, 0.932, 35.62, 0.848),
+                ("+ De-Init + PGA", 35.86, 0.932, 35.95, 0.858)]
+# Table 3 (X-3D rows): k = 4..8 and sigma_d = 1..5.
+PAPER_TABLE3_K = {"PSNR": (35.80, 35.84, 35.86, 35.87, 35.89),
+                  "SSIM": (0.932, 0.932, 0.933, 0.933, 0.934),
+                  "Time (s)": (536, 567, 629, 763, 865)}
+PAPER_TABLE3_SIGMA = {"PSNR": (35.60, 35.72, 35.86, 35.68, 35.43),
+                      "SSIM": (0.926, 0.928, 0.933, 0.927, 0.925)}
+
+
+# ---------------------------------------------------------------------------- loading
+def _read_json(path: Path):
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def load_runs(out_dir) -> dict:
+    """{experiment: [row]} where row has case, run, category, label, method, views, dir,
+    status and ``metrics`` (the run's metrics.json, or None when missing)."""
+    out = Path(out_dir)
+    result = {}
+    for exp_dir in sorted(p for p in out.iterdir() if p.is_dir() and p.name != "data"):
+        runs = _read_json(exp_dir / "runs.json")
+        rows = []
+        if runs is not None:
+            for r in runs.get("runs", []):
+                rows.append(dict(r))
+        else:   # no runs.json: scan the layout
+            for m in sorted(exp_dir.glob("*/*/metrics.json")):
+                met = _read_json(m) or {}
+                sc = (met.get("data") or {}).get("suite_case") or {}
+                rows.append({"case": m.parent.parent.name, "run": m.parent.name,
+                             "category": sc.get("category"), "label": m.parent.name,
+                             "method": met.get("method"), "views": sc.get("views")})
+        for r in rows:
+            d = exp_dir / r["case"] / r["run"]
+            r["dir"] = str(d)
+            r["metrics"] = _read_json(d / "metrics.json")
+        if rows:
+            result[exp_dir.name] = rows
+    return result
+
+
+def _commands(out_dir) -> list:
+    cmds = []
+    for f in sorted(Path(out_dir).glob("*/runs.json")):
+        cmds += (_read_json(f) or {}).get("commands", [])
+    return cmds
+
+
+def _value(row, key):
+    m = row.get("metrics") if row else None
+    if not m or key not in m or m[key] is None:
+        return None
+    v = m[key]
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+
+def _fmt(v, digits):
+    return DASH if v is None else f"{v:.{digits}f}"
+
+
+def _fmt_time(v):
+    if v is None:
+        return DASH
+    if v < 0.1:
+        return f"{v:.3f}"
+    return f"{v:.2f}" if v < 10 else f"{v:.0f}" if v >= 1000 else f"{v:.1f}"
+
+
+def _mean_all(values):
+    """Mean only when every value is present (never averages over a partial set)."""
+    if not values or any(v is None for v in values):
+        return None
+    return float(np.mean(values))
+
+
+def _cases(rows) -> list:
+    seen = []
+    for r in rows:
+        if r["case"] not in [c for c, _ in seen]:
+            seen.append((r["case"], r.get("category")))
+    return seen
+
+
+def _index(rows) -> dict:
+    return {(r["case"], r["run"]): r for r in rows}
+
+
+def _methods_present(rows, order=METHOD_ORDER) -> list:
+    runs = []
+    for r in rows:
+        if r["run"] not in runs:
+            runs.append(r["run"])
+    known = [m for m in order if m in runs]
+    return known + [m for m in runs if m not in known]
+
+
+# ---------------------------------------------------------------------------- tables
+def _md_table(header, rows) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def table1_rows(rows) -> tuple[list, list]:
+    """(header, body) of our Table 1: per method the per-category and overall mean PSNR /
+    SSIM and the mean time (s); a mean is shown only when every case in it has a result."""
+    idx = _index(rows)
+    cases = _cases(rows)
+    header = ["method"]
+    cats = [c for c in CATS if any(cat == c for _, cat in cases)]
+    for c in cats:
+        n = sum(cat == c for _, cat in cases)
+        header += [f"{c} PSNR ({n})", f"{c} SSIM"]
+    header += [f"Average PSNR ({len(cases)})", "Average SSIM", "time (s)"]
+    body = []
+    # every method of the paper's comparison, present or not ("—" rows say what is missing)
+    runs = list(METHOD_ORDER) + [m for m in _methods_present(rows) if m not in METHOD_ORDER]
+    for m in runs:
+        line = [METHOD_NAMES.get(m, m)]
+        for c in cats:
+            sel = [idx.get((case, m)) for case, cat in cases if cat == c]
+            line += [_fmt(_mean_all([_value(r, "psnr_3d") for r in sel]), 2),
+                     _fmt(_mean_all([_value(r, "ssim_3d") for r in sel]), 3)]
+        sel = [idx.get((case, m)) for case, _ in cases]
+        line += [_fmt(_mean_all([_value(r, "psnr_3d") for r in sel]), 2),
+                 _fmt(_mean_all([_value(r, "ssim_3d") for r in sel]), 3),
+                 _fmt_time(_mean_all([_value(r, "seconds") for r in sel]))]
+        body.append(line)
+    return header, body
+
+
+def per_case_rows(rows) -> tuple[list, list]:
+    """(header, body): one line per case, PSNR / SSIM / seconds of every run."""
+    idx = _index(rows)
+    runs = _methods_present(rows)
+    header = ["case", "cat."] + [f"{r}" for r in runs]
+    body = []
+    for case, cat in _cases(rows):
+        line = [case, cat or DASH]
+        for run in runs:
+            r = idx.get((case, run))
+            p, s, t = (_value(r, "psnr_3d"), _value(r, "ssim_3d"), _value(r, "seconds"))
+            line.append(DASH if p is None else f"{p:.2f} / {s:.3f} / {_fmt_time(t)} s")
+        body.append(line)
+    return header, body
+
+
+def paper_table1_md() -> str:
+    header = ["method (paper)", "HO PSNR", "HO SSIM", "BS PSNR", "BS SSIM", "AO PSNR",
+              "AO SSIM", "Average PSNR", "Average SSIM", "RD PSNR", "RD SSIM"]
+    body = [[name] + [f"{v:.2f}" if i % 2 == 0 else f"{v:.3f}"
+                      for pair in vals for i, v in enumerate(pair)]
+            for name, vals in PAPER_TABLE1.items()]
+    return _md_table(header, body)
+
+
+def _paper_fmt(metric: str, v) -> str:
+    return f"{v:.2f}" if metric == "PSNR" else f"{v:.3f}" if metric == "SSIM" else f"{v}"
+
+
+def _runs_summary(rows, runs, labels=None) -> tuple[list, list]:
+    """Mean PSNR / SSIM / time per run name over the cases of ``rows`` (complete only)."""
+    idx = _index(rows)
+    cases = _cases(rows)
+    header = ["run", f"PSNR ({len(cases)} cases)", "SSIM", "time (s)"] + \
+        [f"{c} PSNR" for c, _ in cases]
+    body = []
+    for run in runs:
+        sel = [idx.get((c, run)) for c, _ in cases]
+        if all(r is None for r in sel):
+            continue
+        label = (labels or {}).get(run) or next((r.get("label") for r in sel if r), run)
+        body.append([label, _fmt(_mean_all([_value(r, "psnr_3d") for r in sel]), 2),
+                     _fmt(_mean_all([_value(r, "ssim_3d") for r in sel]), 3),
+                     _fmt_time(_mean_all([_value(r, "seconds") for r in sel]))] +
+                    [_fmt(_value(r, "psnr_3d"), 2) for r in sel])
+    return header, body
+
+
+def _sweep_table(rows, prefix, values, with_time=True) -> tuple[list, list]:
+    idx = _index(rows)
+    cases = _cases(rows)
+    runs = [f"{prefix}{v:g}" for v in values]
+    header = ["metric"] + [f"{prefix.rstrip('_')}={v:g}" for v in values]
+    body = []
+    metrics = [("PSNR", "psnr_3d", 2), ("SSIM", "ssim_3d", 3)]
+    if with_time:
+        metrics.append(("time (s)", "seconds", None))
+    for name, key, dig in metrics:
+        line = [f"{name} (mean of {len(cases)})"]
+        for run in runs:
+            v = _mean_all([_value(idx.get((c, run)), key) for c, _ in cases])
+            line.append(_fmt_time(v) if dig is None else _fmt(v, dig))
+        body.append(line)
+    return header, body
+
+
+# ---------------------------------------------------------------------------- plots
+def _plt():
+    from .plotting import _agg
+    return _agg()
+
+
+def _read_csv(path: Path) -> list:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _col(rows, key):
+    out = []
+    for r in rows:
+        v = r.get(key, "")
+        out.append(float(v) if v not in ("", None) else None)
+    return out
+
+
+def replay_early_stop(iterations, heldout, drop=None):
+    """Iteration at which ``EarlyStopper(drop)`` would stop on the logged held-out PSNR
+    (None if it never would); ``drop`` defaults to TrainConfig's stop_drop."""
+    from .config import TrainConfig
+    from .early_stop import EarlyStopper
+    st = EarlyStopper(drop=TrainConfig().stop_drop if drop is None else drop)
+    for it, v in zip(iterations, heldout):
+        if v is None:
+            continue
+        if st.update(int(it), v) == "stop":
+            return int(it), st.best_iteration
+    return None, st.best_iteration
+
+
+def plot_iterations(rows, img_dir: Path) -> list:
+    """Per case: held-out PSNR and 3-D PSNR vs iteration; returns [(case, png, facts)]."""
+    plt = _plt()
+    out = []
+    idx = _index(rows)
+    for case, _ in _cases(rows):
+        runs = [r for r in rows if r["case"] == case and r.get("metrics")]
+        if not runs:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ax2 = ax.twinx()
+        facts = []
+        any3d = False
+        for r in runs:
+            log = _read_csv(Path(r["dir"]) / "train_log.csv")
+            ev = [x for x in log if x.get("heldout_psnr") not in ("", None)]
+            if not ev:
+                continue
+            it = _col(ev, "iteration")
+            ho = _col(ev, "heldout_psnr")
+            ls = "-" if r["run"].endswith("nostop") else "--"
+            ax.plot(it, ho, ls, marker="o", ms=3, label=f"held-out views, {r['label']}")
+            p3 = [(i, v) for i, v in zip(_col(ev, "iteration"), _col(ev, "psnr_3d"))
+                  if v is not None]
+            if p3:
+                any3d = True
+                ax2.plot(*zip(*p3), ls, color="tab:red", marker="s", ms=3,
+                         label=f"3-D vs ground truth, {r['label']}")
+            info = r["metrics"].get("method_info") or {}
+            if r["run"].endswith("nostop"):
+                stop_it, best_it = replay_early_stop(it, ho)
+                if stop_it is not None:
+                    ax.axvline(stop_it, color="k", ls=":", lw=1)
+                    ax.annotate("early stop (replayed)", (stop_it, ax.get_ylim()[0]),
+                                rotation=90, fontsize=7, va="bottom", ha="right")
+                facts.append({"run": r["run"], "label": r["label"], "replayed_stop": stop_it,
+                              "best_heldout_iteration": best_it,
+                              "max_3d": max((v for _, v in p3), default=None),
+                              "iterations_run": info.get("iterations_run"),
+                              "planned": info.get("iterations_planned")})
+            else:
+                stop = info.get("iterations_run")
+                if stop is not None and "budget" not in str(info.get("stopped_by", "")):
+                    ax.axvline(stop, color="tab:green", ls="-.", lw=1)
+                    ax.annotate("early stop", (stop, ax.get_ylim()[0]), rotation=90,
+                                fontsize=7, va="bottom", ha="right", color="tab:green")
+                facts.append({"run": r["run"], "label": r["label"],
+                              "stopped_at": stop, "stopped_by": info.get("stopped_by"),
+                              "best_iteration": info.get("best_iteration"),
+                              "psnr_3d": r["metrics"].get("psnr_3d"),
+                              "planned": info.get("iterations_planned")})
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("held-out view PSNR (dB)")
+        if any3d:
+            ax2.set_ylabel("3-D PSNR (dB)", color="tab:red")
+        else:
+            ax2.set_yticks([])
+        h1, l1 = ax.get_legend_handles_labels()
+        h2, l2 = ax2.get_legend_handles_labels()
+        ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="lower right")
+        ax.set_title(f"iteration analysis: {case}")
+        fig.tight_layout()
+        png = img_dir / f"iterations_{case}.png"
+        fig.savefig(png, dpi=90)
+        plt.close(fig)
+        out.append((case, png, facts))
+    return out
+
+
+def plot_speed(rows, img_dir: Path) -> list:
+    """Per case: 3-D PSNR against wall-clock seconds for every method; returns
+    [(case, png, {run: "curve" | "point"})]."""
+    plt = _plt()
+    out = []
+    for case, _ in _cases(rows):
+        runs = [r for r in rows if r["case"] == case and r.get("metrics")]
+        if not runs:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 4))
+        kinds = {}
+        for i, r in enumerate(runs):
+            color = f"C{i}"
+            m = r["metrics"]
+            curve = []
+            prog = _read_csv(Path(r["dir"]) / "progress_log.csv")
+            if prog:
+                curve = [(s, p) for s, p in zip(_col(prog, "seconds"), _col(prog, "psnr_3d"))
+                         if p is not None]
+            else:
+                log = _read_csv(Path(r["dir"]) / "train_log.csv")
+                curve = [(s, p) for s, p in zip(_col(log, "seconds"), _col(log, "psnr_3d"))
+                         if p is not None]
+            if curve:
+                ax.plot(*zip(*curve), "-", color=color, marker=".", ms=4, label=r["run"])
+                kinds[r["run"]] = "curve"
+            else:
+                kinds[r["run"]] = "point"
+            if m.get("psnr_3d") is not None:
+                ax.plot([m["seconds"]], [m["psnr_3d"]], "*", ms=11, color=color,
+                        label=None if curve else r["run"])
+        ax.set_xscale("log")
+        ax.set_xlabel("wall-clock seconds (log)")
+        ax.set_ylabel("3-D PSNR (dB)")
+        ax.set_title(f"speed vs error: {case}  (star = final result, total time)")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        png = img_dir / f"speed_{case}.png"
+        fig.savefig(png, dpi=90)
+        plt.close(fig)
+        out.append((case, png, kinds))
+    return out
+
+
+def views_table_and_plot(rows, img_dir: Path):
+    """(header, body, png): mean PSNR per method and view count, and a plot per case."""
+    by = {}
+    for r in rows:
+        method = r.get("method") or r["run"].rsplit("_v", 1)[0]
+        v = r.get("views")
+        if v is None and "_v" in r["run"]:
+            v = int(r["run"].rsplit("_v", 1)[1])
+        by.setdefault(method, {}).setdefault(int(v), []).append(r)
+    views = sorted({v for d in by.values() for v in d})
+    cases = _cases(rows)
+    header = ["method"] + [f"{v} views PSNR / SSIM" for v in views]
+    body = []
+    methods = [m for m in METHOD_ORDER if m in by] + [m for m in by if m not in METHOD_ORDER]
+    for m in methods:
+        line = [METHOD_NAMES.get(m, m)]
+        for v in views:
+            sel = {r["case"]: r for r in by[m].get(v, [])}
+            ps = _mean_all([_value(sel.get(c), "psnr_3d") for c, _ in cases])
+            ss = _mean_all([_value(sel.get(c), "ssim_3d") for c, _ in cases])
+            line.append(DASH if ps is None else f"{ps:.2f} / {ss:.3f}")
+        body.append(line)
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False)
+    for ax, (case, _) in zip(axes[0], cases):
+        for m in methods:
+            pts = sorted((v, _value(r, "psnr_3d")) for v, rs in by[m].items() for r in rs
+                         if r["case"] == case and _value(r, "psnr_3d") is not None)
+            if pts:
+                ax.plot(*zip(*pts), "o-", label=m)
+        ax.set_title(case)
+        ax.set_xlabel("training views")
+        ax.set_ylabel("3-D PSNR (dB)")
+        ax.set_xticks(views)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    png = img_dir / "views.png"
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+    return header, body, png
+
+
+def montage(out_dir: Path, rows, case: str, png: Path) -> Path | None:
+    """Central z slice of the ground truth and of every method's result, with |error|."""
+    gt_path = Path(out_dir) / "data" / case / "vol_gt.npy"
+    if not gt_path.is_file():
+        return None
+    gt = np.load(gt_path)
+    preds = []
+    for r in rows:
+        if r["case"] == case and r.get("metrics") and (Path(r["dir"]) / "vol_pred.npy").is_file():
+            preds.append((r["run"], np.load(Path(r["dir"]) / "vol_pred.npy"),
+                          r["metrics"].get("psnr_3d")))
+    if not preds:
+        return None
+    plt = _plt()
+    z = gt.shape[2] // 2
+    vmax = float(max(gt.max(), 1e-6))
+    n = len(preds) + 1
+    fig, axes = plt.subplots(2, n, figsize=(2.4 * n + 0.8, 5.0), squeeze=False,
+                             constrained_layout=True)
+    axes[0][0].imshow(gt[:, :, z], cmap="gray", vmin=0, vmax=vmax)
+    axes[0][0].set_title("ground truth", fontsize=9)
+    axes[1][0].axis("off")
+    for j, (name, vol, p) in enumerate(preds, start=1):
+        axes[0][j].imshow(vol[:, :, z], cmap="gray", vmin=0, vmax=vmax)
+        axes[0][j].set_title(f"{name}\n{p:.2f} dB" if p is not None else name, fontsize=9)
+        im = axes[1][j].imshow(np.abs(vol[:, :, z] - gt[:, :, z]), cmap="magma", vmin=0,
+                               vmax=0.25 * vmax)
+        axes[1][j].set_title("|error|", fontsize=8)
+    for a in axes.ravel():
+        a.set_xticks([]), a.set_yticks([])
+    fig.colorbar(im, ax=axes[:, -1].tolist(), shrink=0.6,
+                 label="|error| (images: 0 to max of ground truth)")
+    fig.suptitle(f"{case}: central z slice [x, y] (x down the rows)", fontsize=10)
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+    return png
+
+
+# ---------------------------------------------------------------------------- summary
+def summary_lines(out_dir) -> list:
+    """Three lines for the README: where gr wins, where not, at what time cost (Table 1)."""
+    rows = load_runs(out_dir).get("table1", [])
+    idx = _index(rows)
+    cases = [c for c, _ in _cases(rows)]
+    wins, losses, vs_r2 = [], [], []
+    for c in cases:
+        g = _value(idx.get((c, "gr")), "psnr_3d")
+        others = {m: _value(idx.get((c, m)), "psnr_3d") for m in METHOD_ORDER if m != "gr"}
+        others = {m: v for m, v in others.items() if v is not None}
+        if g is None or not others:
+            continue
+        best_m = max(others, key=others.get)
+        (wins if g > others[best_m] else losses).append((c, best_m, g - others[best_m]))
+        if others.get("r2") is not None:
+            vs_r2.append(g - others["r2"])
+    if not wins and not losses:
+        return ["No Table 1 runs with both gr and another method yet: no summary."]
+    line1 = (f"GR-Gaussian (gr) has the best 3-D PSNR on {len(wins)} of "
+             f"{len(wins) + len(losses)} cases"
+             + (f" ({', '.join(f'{c} +{d:.2f} dB' for c, _, d in wins)})" if wins else "")
+             + (f"; against R2-Gaussian it is {np.mean(vs_r2):+.2f} dB on average "
+                f"(better on {sum(d > 0 for d in vs_r2)} of {len(vs_r2)})" if vs_r2 else "")
+             + ".")
+    line2 = ("It is not the best on: " + ", ".join(
+        f"{c} ({METHOD_NAMES.get(m, m)} ahead by {-d:.2f} dB)" for c, m, d in losses) + "."
+        if losses else "It is the best on every case of Table 1.")
+    times = {m: _mean_all([_value(idx.get((c, m)), "seconds") for c in cases])
+             for m in METHOD_ORDER}
+    parts = [f"{METHOD_NAMES[m].split(' (')[0]} {_fmt_time(t)} s" for m, t in times.items()
+             if t is not None]
+    ratio = ""
+    if times.get("gr") and times.get("r2"):
+        ratio = f" (gr / r2 = {times['gr'] / times['r2']:.2f}x)"
+    line3 = "Mean time per case: " + ", ".join(parts) + ratio + "."
+    return [line1, line2, line3]
+
+
+# ---------------------------------------------------------------------------- report
+def _setup_md(all_rows: dict) -> str:
+    machines, sizes, iters, sart = set(), set(), {}, set()
+    seen = set()
+    for exp, rows in all_rows.items():
+        for r in rows:
+            m = r.get("metrics")
+            real = os.path.realpath(r["dir"])   # a linked run counts once
+            if not m or real in seen:
+                continue
+            seen.add(real)
+            mc = m.get("machine", {})
+            machines.add((mc.get("variant"), mc.get("cpu"), mc.get("cores"),
+                          mc.get("mitsuba"), mc.get("drjit")))
+            d = m.get("data") or {}
+            sizes.add((tuple(d.get("n_voxel") or m.get("nVoxel") or ()),
+                       tuple(d.get("n_detector") or ()), d.get("mode"),
+                       m.get("n_train_views")))
+            info = m.get("method_info") or {}
+            if "iterations_run" in info:
+                iters.setdefault(m["method"], []).append(
+                    (info["iterations_run"], info.get("iterations_planned")))
+            if m.get("method") in ("sart", "asd-pocs", "sart-curve", "asd-pocs-curve"):
+                sart.add((m["method"], (m.get("options") or {}).get("n_iter", "default")))
+    lines = ["Machine(s) and variant(s) the runs used (from metrics.json):", ""]
+    for v, cpu, cores, mi_v, dr_v in sorted(machines, key=str):
+        lines.append(f"- variant `{v}`, CPU {cpu}, {cores} cores, Mitsuba {mi_v}, "
+                     f"Dr.Jit {dr_v}")
+    lines += ["", "Sizes (volume [x, y, z], detector [v, u], beam, training views):", ""]
+    for nv, nd, mode, views in sorted(sizes, key=str):
+        lines.append(f"- {'x'.join(map(str, nv))} volume, {'x'.join(map(str, nd))} detector, "
+                     f"{mode}, {views} views")
+    if iters:
+        lines += ["", "Training iterations (run / planned; early stopping on held-out "
+                      "views ends runs before the plan):", ""]
+        for m, its in sorted(iters.items()):
+            run = [a for a, _ in its]
+            planned = sorted({b for _, b in its if b is not None})
+            lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
+                         f"(median {int(np.median(run))}), planned {planned}")
+    if sart:
+        lines += ["", "Iterative baselines: " + ", ".join(
+            f"{m} n_iter={n}" for m, n in sorted(sart, key=str)) +
+            " (\"default\" = the method's default, see mi_grg.iterative)."]
+    return "\n".join(lines)
+
+
+def write_report(out_dir, report_path="docs/results.md") -> Path:
+    """Write the markdown report (and its PNGs under <report dir>/img/results/)."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise FileNotFoundError(f"results directory {out} does not exist")
+    report = Path(report_path)
+    img_dir = report.parent / "img" / "results"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    rel = os.path.relpath(img_dir, report.parent)
+    all_rows = load_runs(out)
+    md = ["# Results", "",
+          f"Generated by `mi-grg report --out {out} --report {report}` from the runs in "
+          f"`{out}`. Regenerate everything with:", "", "```"]
+    md += _commands(out) + [f"mi-grg report --out {out} --report {report}", "```", ""]
+    md += ["Our numbers: 3-D PSNR (dB) and SSIM of the reconstructed volume against the "
+           "simulated ground truth, R2-Gaussian's convention (data range 1, SSIM over 2-D "
+           "slices), mean over cases; time = wall-clock seconds of the whole reconstruction. "
+           f"\"{DASH}\" = no result (run missing or failed); a mean needs every case.", ""]
+    md += ["## Summary", ""] + [f"{i + 1}. {s}" for i, s in enumerate(summary_lines(out))]
+    md += ["", "## Setup", "", _setup_md(all_rows), ""]
+
+    t1 = all_rows.get("table1")
+    md += ["## Table 1: methods x cases", ""]
+    if t1:
+        h, b = table1_rows(t1)
+        md += ["Ours (category in parentheses: number of cases):", "", _md_table(h, b), ""]
+        h, b = per_case_rows(t1)
+        md += ["Per case (PSNR / SSIM / time):", "", _md_table(h, b), ""]
+    else:
+        md += [f"{DASH} (no table1 runs)", ""]
+    md += ["**The paper's Table 1** (GR-Gaussian paper, 25 views, on its own data: X-3D at "
+           "256^3 volumes / 512^2 projections, RD = real-world scans; NAF and SAX-NeRF are not "
+           "implemented here). Transcribed for reference: NOT comparable case by case with "
+           "ours (different objects, sizes and noise):", "", paper_table1_md(), ""]
+
+    t2 = all_rows.get("table2")
+    md += ["## Table 2: ablation", ""]
+    if t2:
+        h, b = _runs_summary(t2, ["r2", "r2+deinit", "r2+pga", "r2+graph", "gr"])
+        md += [_md_table(h, b), ""]
+    else:
+        md += [f"{DASH} (no table2 runs)", ""]
+    md += ["The paper's Table 2 (X-3D / real-world PSNR, SSIM; its own data, for reference):",
+           "", _md_table(["paper", "X-3D PSNR", "X-3D SSIM", "RD PSNR", "RD SSIM"],
+                         [[n, f"{a:.2f}", f"{b:.3f}", f"{c:.2f}", f"{d:.3f}"]
+                          for n, a, b, c, d in PAPER_TABLE2]), ""]
+
+    t3 = all_rows.get("table3")
+    md += ["## Table 3: k and sigma_d", ""]
+    if t3:
+        ks = sorted({int(r["run"][1:]) for r in t3 if r["run"][:1] == "k"})
+        sds = sorted({float(r["run"][len("sigma_d"):]) for r in t3
+                      if r["run"].startswith("sigma_d")})
+        if ks:
+            md += [_md_table(*_sweep_table(t3, "k", ks)), ""]
+        if sds:
+            md += [_md_table(*_sweep_table(t3, "sigma_d", sds)), ""]
+    else:
+        md += [f"{DASH} (no table3 runs)", ""]
+    md += ["The paper's Table 3 (X-3D rows, its own data and GPU):", "",
+           _md_table(["paper"] + [f"k={k}" for k in range(4, 9)],
+                     [[n] + [_paper_fmt(n, v) for v in vals]
+                      for n, vals in PAPER_TABLE3_K.items()]),
+           "", _md_table(["paper"] + [f"sigma_d={s}" for s in range(1, 6)],
+                         [[n] + [_paper_fmt(n, v) for v in vals]
+                          for n, vals in PAPER_TABLE3_SIGMA.items()]), ""]
+
+    it = all_rows.get("iterations")
+    md += ["## Iteration analysis", ""]
+    if it:
+        md += ["Held-out-view PSNR (the early-stopping signal, no ground truth) and 3-D PSNR "
+               "(when logged) against iteration. Solid: the run with early stopping disabled "
+               "(stop_drop 0.99) over the full schedule, with the iteration where the default "
+               "rule (stop when held-out PSNR falls 0.5 % below its best) would have stopped "
+               "it (dotted, replayed from its log); dashed: the normal run, its actual stop "
+               "dash-dotted.", ""]
+        for case, png, facts in plot_iterations(it, img_dir):
+            md += [f"![iterations {case}]({rel}/{png.name})", ""]
+            for f in facts:
+                md.append("- " + ", ".join(f"{k}: {v}" for k, v in f.items() if v is not None))
+            md.append("")
+    else:
+        md += [f"{DASH} (no iterations runs)", ""]
+
+    sp = all_rows.get("speed")
+    md += ["## Speed against error", ""]
+    if sp:
+        md += ["3-D PSNR against wall-clock seconds, one plot per case. Curves: SART / "
+               "ASD-POCS after every sweep (progress_log.csv, the time spent scoring "
+               "excluded) and r2 / gr from train_log.csv where it holds 3-D PSNR (training-"
+               "loop seconds: FDK initialisation and final voxelisation not included); a star "
+               "is each run's final result at its total time; a method with only a star "
+               "logs no intermediate 3-D PSNR.", ""]
+        for case, png, kinds in plot_speed(sp, img_dir):
+            md += [f"![speed {case}]({rel}/{png.name})", "",
+                   "- " + ", ".join(f"{k}: {v}" for k, v in kinds.items()), ""]
+    else:
+        md += [f"{DASH} (no speed runs)", ""]
+
+    vw = all_rows.get("views")
+    md += ["## Number of views", ""]
+    if vw:
+        h, b, png = views_table_and_plot(vw, img_dir)
+        md += ["Mean over the cases of the views experiment:", "", _md_table(h, b), "",
+               f"![views]({rel}/{png.name})", ""]
+    else:
+        md += [f"{DASH} (no views runs)", ""]
+
+    md += ["## Best and worst cases", ""]
+    if t1:
+        idx = _index(t1)
+        ranked = []
+        for c, _ in _cases(t1):
+            p = _value(idx.get((c, "gr")), "psnr_3d")
+            if p is None:
+                vals = [_value(r, "psnr_3d") for r in t1 if r["case"] == c]
+                vals = [v for v in vals if v is not None]
+                p = max(vals) if vals else None
+            if p is not None:
+                ranked.append((p, c))
+        ranked.sort()
+        picks = []
+        if ranked:
+            picks = [("best", ranked[-1][1])] + ([("worst", ranked[0][1])]
+                                                 if len(ranked) > 1 else [])
+        for which, case in picks:
+            png = montage(out, t1, case, img_dir / f"montage_{which}_{case}.png")
+            if png is not None:
+                md += [f"{which.capitalize()} case by gr's 3-D PSNR (or the best method's "
+                       f"where gr is missing): **{case}**", "",
+                       f"![{which} {case}]({rel}/{png.name})", ""]
+        md += ["Every run also has its own `slices.png` (three central slices, ground truth, "
+               "|error|) in its directory under " f"`{out}`.", ""]
+    else:
+        md += [f"{DASH}", ""]
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text("\n".join(md) + "\n")
+    return report

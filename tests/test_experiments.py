@@ -1,0 +1,236 @@
+"""mi_grg.experiments / mi_grg.report end to end on a tiny suite (16^3, 4 views, fdk + sart):
+resumability, parallel = serial, failure isolation, and a report whose numbers are read back
+independently from metrics.json."""
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mi_grg
+from mi_grg.experiments import (SuiteError, load_suite, plan_experiment, run_experiment)
+from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, summary_lines,
+                           write_report)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def flaky_method(case, **options):
+    """A test method (imported by the spawned workers via the suite's extra_methods): fails
+    on the 'blob' case, returns zeros elsewhere."""
+    if case.info.get("suite_case", {}).get("name") == "blob":
+        raise RuntimeError("deliberate failure for the test")
+    return np.zeros(case.geometry.nVoxel, np.float32)
+
+
+def _suite(tmp: Path, extra=None, methods=("fdk", "sart")) -> Path:
+    x = -1 + (np.arange(20) + 0.5) / 10
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    np.save(tmp / "blob.npy", ((X ** 2 + (Y / 0.6) ** 2 + Z ** 2) < 0.5).astype(np.float32) * .8)
+    common = {"views": 4, "test_views": 2, "n": 16, "det": 24, "mode": "cone"}
+    suite = {"name": "tiny", "variant": "llvm_ad_mono",
+             "method_options": {"sart": {"n_iter": 2}},
+             "experiments": {"table1": {"methods": list(methods)}},
+             "cases": [{"name": "shepp", "category": "HO", "source": "shepp", **common,
+                        "noise": {"I0": 1e4, "electronic_std": 10.0}, "seed": 0},
+                       {"name": "blob", "category": "AO", "source": str(tmp / "blob.npy"),
+                        **common, "noise": None, "seed": 0}]}
+    if extra:
+        suite["extra_methods"] = extra
+    path = tmp / ("suite_extra.json" if extra else "suite.json")
+    path.write_text(json.dumps(suite))
+    return path
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("exp")
+    suite = _suite(tmp)
+    out = tmp / "out1"
+    res = run_experiment("table1", suite, out, jobs=1, progress=False)
+    return tmp, suite, out, res
+
+
+@pytest.fixture(scope="module")
+def parallel(serial):
+    tmp = serial[0]
+    suite = _suite(tmp, extra={"flaky": "test_experiments:flaky_method"},
+                   methods=("fdk", "sart", "flaky"))
+    out = tmp / "out2"
+    res = run_experiment("table1", suite, out, jobs=2, progress=False)
+    return suite, out, res
+
+
+def _metrics(out, case, run):
+    return json.loads((Path(out) / "table1" / case / run / "metrics.json").read_text())
+
+
+def test_table1_runs_and_data(serial):
+    tmp, suite, out, res = serial
+    assert res["ran"] == 4 and res["failed"] == 0
+    for case in ("shepp", "blob"):
+        gt = np.load(out / "data" / case / "vol_gt.npy")
+        for run in ("fdk", "sart"):
+            d = out / "table1" / case / run
+            for f in ("metrics.json", "vol_pred.npy", "slices.png", "run_spec.json"):
+                assert (d / f).is_file(), d / f
+            m = _metrics(out, case, run)
+            pred = np.load(d / "vol_pred.npy")
+            psnr = 10 * np.log10(1.0 / np.mean((pred.astype(np.float64) - gt) ** 2))
+            assert m["psnr_3d"] == pytest.approx(psnr, abs=1e-6)
+            assert m["nVoxel"] == [16, 16, 16] and m["n_train_views"] == 4
+    assert _metrics(out, "shepp", "sart")["options"]["n_iter"] == 2
+    # the data are what the suite says: same as simulating directly
+    from mi_grg.noise import NoiseModel
+    from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+    geo = default_geometry(n=16, det=24, views=4)
+    direct = simulate_case("shepp", geo, default_test_angles(2), NoiseModel(1e4, 10.0), seed=0)
+    case = mi_grg.load_case(out / "data" / "shepp")
+    np.testing.assert_allclose(case.train, direct.train, atol=1e-6)
+    np.testing.assert_allclose(case.vol_gt, direct.vol_gt, atol=1e-7)
+    blob = mi_grg.load_case(out / "data" / "blob")
+    assert blob.info["source"] == "mi_grg.volume_phantom"
+
+
+def test_rerun_does_no_work(serial):
+    tmp, suite, out, _ = serial
+    before = {p: p.stat().st_mtime_ns for p in out.glob("table1/*/*/metrics.json")}
+    res = run_experiment("table1", suite, out, jobs=1, progress=False)
+    assert res["ran"] == 0 and res["done before"] == 4 and res["failed"] == 0
+    assert {p: p.stat().st_mtime_ns for p in out.glob("table1/*/*/metrics.json")} == before
+
+
+def test_parallel_matches_serial_and_isolates_failure(serial, parallel):
+    out1 = serial[2]
+    suite, out2, res = parallel
+    assert res["ran"] == 5 and res["failed"] == 1
+    for case in ("shepp", "blob"):
+        for run in ("fdk", "sart"):
+            a, b = _metrics(out1, case, run), _metrics(out2, case, run)
+            # 1 vs 2 Dr.Jit threads per process: only the order of float32 sums may differ
+            assert b["psnr_3d"] == pytest.approx(a["psnr_3d"], abs=1e-3)
+            assert b["ssim_3d"] == pytest.approx(a["ssim_3d"], abs=1e-5)
+    bad = out2 / "table1" / "blob" / "flaky"
+    assert not (bad / "metrics.json").exists()
+    assert "deliberate failure" in (bad / "error.txt").read_text()
+    assert (out2 / "table1" / "shepp" / "flaky" / "metrics.json").is_file()
+    runs = json.loads((out2 / "table1" / "runs.json").read_text())["runs"]
+    status = {(r["case"], r["run"]): r["status"] for r in runs}
+    assert status[("blob", "flaky")] == "failed" and status[("shepp", "flaky")] == "ran"
+
+
+def _table_row(md: str, section: str, name: str) -> list:
+    part = md.split(section, 1)[1]
+    for line in part.splitlines():
+        if line.startswith(f"| {name} |"):
+            return [c.strip() for c in line.strip().strip("|").split("|")]
+    raise AssertionError(f"no row {name!r} after {section!r}")
+
+
+def test_report_numbers_come_from_metrics(parallel, tmp_path):
+    suite, out, _ = parallel
+    path = write_report(out, tmp_path / "docs" / "results.md")
+    md = path.read_text()
+    # independent read-back: category means from metrics.json
+    m = {(c, r): _metrics(out, c, r) for c in ("shepp", "blob") for r in ("fdk", "sart")}
+    for run, name in (("fdk", "FDK"), ("sart", "SART")):
+        row = _table_row(md, "## Table 1", name)
+        ho, ao = m[("shepp", run)], m[("blob", run)]
+        assert row[1] == f"{ho['psnr_3d']:.2f}" and row[2] == f"{ho['ssim_3d']:.3f}"
+        assert row[3] == f"{ao['psnr_3d']:.2f}" and row[4] == f"{ao['ssim_3d']:.3f}"
+        assert row[5] == f"{(ho['psnr_3d'] + ao['psnr_3d']) / 2:.2f}"
+        assert row[6] == f"{(ho['ssim_3d'] + ao['ssim_3d']) / 2:.3f}"
+    # the failed run: its category and the overall mean are missing, never invented
+    flaky = _table_row(md, "## Table 1", "flaky")
+    assert flaky[1] == f"{_metrics(out, 'shepp', 'flaky')['psnr_3d']:.2f}"
+    assert flaky[3] == "—" and flaky[5] == "—"
+    # methods that did not run are rows of dashes
+    assert set(_table_row(md, "## Table 1", "GR-Gaussian (gr)")[1:]) == {"—"}
+    # the paper's numbers are there and labelled as the paper's
+    paper = _table_row(md, "The paper's Table 1", "Ours (GR-Gaussian)")
+    assert paper[1:3] == ["33.47", "0.891"] and paper[9:11] == ["35.95", "0.858"]
+    assert "X-3D" in md and "NOT comparable" in md
+    assert PAPER_TABLE1["SART"][3] == (31.14, 0.825)
+    # montages and the regenerating command
+    assert re.search(r"!\[best \w+\]\(img/results/montage_best_\w+\.png\)", md)
+    assert any((tmp_path / "docs" / "img" / "results").glob("montage_*.png"))
+    assert f"mi-grg experiment table1 --suite {suite} --out {out}" in md
+
+
+def _fake_run(out: Path, exp: str, case: str, run: str, cat: str, method: str, **metrics):
+    d = out / exp / case / run
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "metrics.json").write_text(json.dumps({"method": method, "seconds": 1.0, **metrics}))
+    runs_file = out / exp / "runs.json"
+    runs = json.loads(runs_file.read_text()) if runs_file.exists() else {"runs": []}
+    runs["runs"].append({"case": case, "run": run, "category": cat, "label": run,
+                         "method": method, "views": 25})
+    runs_file.write_text(json.dumps(runs))
+    return d
+
+
+def test_summary_lines(tmp_path):
+    out = tmp_path / "res"
+    vals = {"a": {"fdk": 20.0, "r2": 30.0, "gr": 31.0}, "b": {"fdk": 21.0, "r2": 33.0,
+                                                             "gr": 32.5}}
+    for case, per in vals.items():
+        for method, p in per.items():
+            _fake_run(out, "table1", case, method, "HO", method, psnr_3d=p, ssim_3d=0.9,
+                      seconds={"fdk": 1.0, "r2": 100.0, "gr": 150.0}[method])
+    lines = summary_lines(out)
+    assert len(lines) == 3
+    assert "best 3-D PSNR on 1 of 2 cases" in lines[0] and "a +1.00 dB" in lines[0]
+    assert "+0.25 dB on average" in lines[0]           # mean of +1.0 and -0.5
+    assert "b (R2-Gaussian (r2) ahead by 0.50 dB)" in lines[1]
+    assert "gr / r2 = 1.50x" in lines[2]
+
+
+def test_iteration_plot_and_replayed_stop(tmp_path):
+    # the early-stop rule replayed on a log: stop at the first value 0.5 % below the best
+    its, vals = [10, 20, 30, 40, 50], [10.0, 12.0, 13.0, 12.94, 12.9]
+    assert replay_early_stop(its, vals) == (50, 30)     # 12.94 > 13 * 0.995 = 12.935
+    out = tmp_path / "res"
+    d = _fake_run(out, "iterations", "c1", "gr-nostop", "HO", "gr", psnr_3d=20.0,
+                  method_info={"iterations_run": 50, "iterations_planned": 50,
+                               "stopped_by": "iteration budget (50) reached"})
+    (d / "train_log.csv").write_text(
+        "iteration,seconds,loss,heldout_psnr,psnr_3d,n_gaussians\n" + "".join(
+            f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its, vals)))
+    md = write_report(out, tmp_path / "r.md").read_text()
+    assert "replayed_stop: 50" in md and "best_heldout_iteration: 30" in md
+    assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
+    assert len(load_runs(out)["iterations"]) == 1
+
+
+def test_repo_suites_are_valid():
+    for kind, n, det in (("cpu", 64, 96), ("gpu", 256, 512)):
+        suite = load_suite(REPO / "experiments" / f"suite_{kind}.json")
+        assert len(suite.cases) >= 8
+        assert {c.category for c in suite.cases} == {"HO", "BS", "AO"}
+        for c in suite.cases:
+            assert (c.views, c.n, c.det) == (25, n, det)
+            assert c.noise == {"I0": 1e4, "electronic_std": 10.0}
+        for name in ("table1", "table2", "table3", "iterations", "speed", "views"):
+            assert plan_experiment(name, suite), name
+    res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
+                         dry_run=True)
+    t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
+    assert len(t1) == 5 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
+    assert not Path("/nonexistent/x").exists()
+
+
+def test_suite_validation(tmp_path):
+    bad = {"cases": [{"name": "a", "category": "XX", "source": "shepp", "views": 5,
+                      "test_views": 2, "n": 8, "det": 8, "mode": "cone", "noise": None,
+                      "seed": 0}]}
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps(bad))
+    with pytest.raises(SuiteError, match="category"):
+        load_suite(p)
+    del bad["cases"][0]["seed"]
+    bad["cases"][0]["category"] = "HO"
+    p.write_text(json.dumps(bad))
+    with pytest.raises(SuiteError, match="seed"):
+        load_suite(p)
