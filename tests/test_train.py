@@ -1,0 +1,116 @@
+"""GR-Gaussian / R2-Gaussian training end to end: quality, outputs, resume, determinism."""
+import csv
+
+import drjit as dr
+import numpy as np
+import pytest
+
+import mi_grg
+from mi_grg.config import make_config
+from mi_grg.gaussians import Gaussians
+from mi_grg.noise import NoiseModel
+from mi_grg.projector import project
+from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+from mi_grg.train import Trainer
+
+TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=20,
+            holdout_every=3)
+
+
+@pytest.fixture(scope="module")
+def tiny_case():
+    geo = default_geometry(n=16, det=24, views=6)
+    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
+
+
+def test_gr_beats_fdk_and_sart_clearly(tmp_path):
+    """The small-case end-to-end check: 48^3 needles, 25 noisy views (about a minute)."""
+    geo = default_geometry(n=48, det=72, views=25)
+    case = simulate_case("needles", geo, default_test_angles(5), NoiseModel(), seed=0)
+    _, fdk = mi_grg.reconstruct(case, "fdk")
+    _, sart = mi_grg.reconstruct(case, "sart", progress=False)
+    _, gr = mi_grg.reconstruct(case, "gr", out_dir=tmp_path, iterations=400, n_points=8000,
+                               max_gaussians=15000, progress=False)
+    best = max(fdk["psnr_3d"], sart["psnr_3d"])
+    assert gr["psnr_3d"] > best + 1.5, (gr["psnr_3d"], fdk["psnr_3d"], sart["psnr_3d"])
+    assert gr["ssim_3d"] > max(fdk["ssim_3d"], sart["ssim_3d"])
+    info = gr["method_info"]
+    assert info["n_gaussians"] <= 15000 and info["iterations_run"] <= 400
+    assert info["held_out_views"] == list(range(0, 25, 8))
+
+
+def test_outputs_log_and_plot(tiny_case, tmp_path):
+    _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=30,
+                              progress=False, **TINY)
+    for name in ("vol_pred.npy", "metrics.json", "slices.png", "gaussians.npz",
+                 "gaussians.ply", "train_log.csv", "train_log.png", "checkpoint.npz"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
+    assert len(rows) == 30 and set(rows[0]) == {"iteration", "seconds", "loss", "heldout_psnr",
+                                                "psnr_3d", "n_gaussians"}
+    assert rows[-1]["heldout_psnr"] != ""          # evaluated at the last iteration
+    g = Gaussians.load_npz(tmp_path / "gaussians.npz")
+    assert len(g) == m["method_info"]["n_gaussians"]
+    assert "iteration budget" in m["method_info"]["stopped_by"]
+
+
+def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
+    cfg = make_config("gr", iterations=40, seed=5, **TINY)
+    full = Trainer(tiny_case, cfg, out_dir=tmp_path / "full", progress=False)
+    full.run()
+    ref = full.volume()
+
+    broken = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False)
+    step, calls = broken.optimizer.step, [0]
+
+    def crash_after_25(*a, **k):
+        calls[0] += 1
+        if calls[0] > 25:
+            raise KeyboardInterrupt
+        return step(*a, **k)
+    broken.optimizer.step = crash_after_25
+    with pytest.raises(KeyboardInterrupt):
+        broken.run()
+    resumed = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False, resume=True)
+    assert resumed.state.iteration == 20           # the last checkpoint
+    resumed.run()
+    vol = resumed.volume()
+    assert resumed.state.iteration == 40
+    # Same trajectory up to the order of floating-point atomics: nearly identical volumes.
+    err = np.abs(vol - ref).max() / max(np.abs(ref).max(), 1e-6)
+    assert err < 2e-2, err
+
+
+def test_fixed_seed_gives_the_same_result(tiny_case):
+    vols = [mi_grg.reconstruct(tiny_case, "gr", iterations=15, progress=False, seed=9,
+                               **TINY)[0] for _ in range(2)]
+    np.testing.assert_allclose(vols[0], vols[1], atol=1e-4 * max(vols[0].max(), 1e-6))
+
+
+def test_r2_runs_without_any_graph_component(tiny_case):
+    t = Trainer(tiny_case, make_config("r2", iterations=10, **TINY), progress=False)
+    assert not t.uses_graph
+    t.run()
+    assert t.graph is None and t.final_density_scale is None
+    assert np.all(np.isfinite(t.volume()))
+
+
+def test_graph_field_starts_from_the_same_field_as_the_plain_init(tiny_case):
+    """De-Init densities are divided by the graph density scale, so the augmented field of
+    the initial state equals the plain field of the same initial Gaussians."""
+    from mi_grg.graph import build_graph, graph_density_scale
+    with_graph = Trainer(tiny_case, make_config("gr", **TINY), progress=False)
+    plain = Trainer(tiny_case, make_config("gr", use_graph_field=False, **TINY), progress=False)
+    g1 = Gaussians.from_raw(with_graph.state.raw)
+    g0 = Gaussians.from_raw(plain.state.raw)
+    scale = graph_density_scale(build_graph(g1.positions, k=6))
+    assert float(dr.max(scale)[0]) > 1.5           # the graph field does change densities
+    geo = tiny_case.geometry
+    a = project(g1, geo, density_scale=scale)
+    b = project(g0, geo)
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * b.max())
+
+
+def test_unknown_option_is_rejected(tiny_case):
+    with pytest.raises(ValueError, match="did you mean 'lambda_lap'"):
+        mi_grg.reconstruct(tiny_case, "gr", lamda_lap=1.0)
