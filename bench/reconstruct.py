@@ -1,0 +1,109 @@
+"""Reconstruction quality and speed: fdk, sart, asd-pocs, r2 and gr on the phantom suite.
+
+Each (phantom, size, method) runs in its own process, so that its peak resident memory
+(ru_maxrss) is its own. Cases: 25 noisy views (TIGRE CTnoise, I0 1e4, electronic std 10),
+default scanner (mi_grg.simulate.default_geometry), detector 1.5 x the volume size.
+Writes docs/bench/reconstruct.json and .md (medians are not taken here: one run per cell,
+the training runs take minutes; the seed is fixed).
+
+    python bench/reconstruct.py                   # 64^3, phantoms shepp, needles, shells
+    python bench/reconstruct.py --sizes 64 128    # also 128^3 (about an hour more)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
+
+
+def one(phantom: str, n: int, method: str) -> dict:
+    """Simulate (seeded) and reconstruct one case in this process."""
+    import mi_grg
+    from mi_grg.noise import NoiseModel
+    from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+    geo = default_geometry(n=n, det=int(1.5 * n), views=25)
+    case = simulate_case(phantom, geo, default_test_angles(25), NoiseModel(), seed=0)
+    opts = {} if method == "fdk" else {"progress": False}
+    t0 = time.perf_counter()
+    _, m = mi_grg.reconstruct(case, method, **opts)
+    out = {"phantom": phantom, "n": n, "method": method, "seconds": time.perf_counter() - t0,
+           "psnr_3d": m["psnr_3d"], "ssim_3d": m["ssim_3d"],
+           "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+           "variant": m["machine"]["variant"]}
+    info = m.get("method_info")
+    if info:
+        out.update({k: info[k] for k in ("iterations_run", "iterations_planned", "stopped_by",
+                                         "n_gaussians")})
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64])
+    ap.add_argument("--phantoms", nargs="+", default=["shepp", "needles", "shells"])
+    ap.add_argument("--methods", nargs="+", default=list(METHODS))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "bench"))
+    ap.add_argument("--one", nargs=3, metavar=("PHANTOM", "N", "METHOD"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2])))
+        return 0
+    rows = []
+    for n in args.sizes:
+        for ph in args.phantoms:
+            for method in args.methods:
+                r = subprocess.run([sys.executable, __file__, "--one", ph, str(n), method],
+                                   capture_output=True, text=True, env=dict(os.environ))
+                if r.returncode:
+                    print(f"{ph} {n} {method} FAILED:\n{r.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                row = json.loads(r.stdout.strip().splitlines()[-1])
+                rows.append(row)
+                print(f"{ph:8s} {n:4d}^3 {method:9s} {row['seconds']:8.1f} s  "
+                      f"PSNR {row['psnr_3d']:6.2f}  SSIM {row['ssim_3d']:.3f}  "
+                      f"peak {row['peak_rss_gb']:.2f} GB", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    (out / "reconstruct.json").write_text(json.dumps({"machine": machine, "rows": rows},
+                                                     indent=2))
+    (out / "reconstruct.md").write_text(to_markdown(rows, machine))
+    return 0
+
+
+def to_markdown(rows: list, machine: dict) -> str:
+    lines = ["# Reconstruction benchmark (`bench/reconstruct.py`)", "",
+             f"Machine: {machine['cpu']}, {machine['cores']} cores, variant "
+             f"{rows[0]['variant'] if rows else '?'}. One run per cell (seed 0); 25 noisy "
+             "views; 3-D PSNR (dB) / SSIM against the ground truth.", "",
+             "| phantom | size | method | PSNR | SSIM | time (s) | peak memory (GB) | "
+             "iterations | Gaussians |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        its = (f"{r['iterations_run']}/{r['iterations_planned']}" if "iterations_run" in r
+               else "")
+        lines.append(f"| {r['phantom']} | {r['n']}^3 | {r['method']} | {r['psnr_3d']:.2f} | "
+                     f"{r['ssim_3d']:.3f} | {r['seconds']:.1f} | {r['peak_rss_gb']:.2f} | "
+                     f"{its} | {r.get('n_gaussians', '')} |")
+    # gr against the best classical method and against r2, per case (measured in this run)
+    lines += ["", "| phantom | size | gr - best classical (dB) | gr - r2 (dB) |", "|---|---|---|---|"]
+    cases = sorted({(r["phantom"], r["n"]) for r in rows})
+    for ph, n in cases:
+        by = {r["method"]: r["psnr_3d"] for r in rows if (r["phantom"], r["n"]) == (ph, n)}
+        classical = [by[m] for m in ("fdk", "sart", "asd-pocs") if m in by]
+        if "gr" in by and classical:
+            d_r2 = f"{by['gr'] - by['r2']:+.2f}" if "r2" in by else "—"
+            lines.append(f"| {ph} | {n}^3 | {by['gr'] - max(classical):+.2f} | {d_r2} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
