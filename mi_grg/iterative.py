@@ -75,7 +75,12 @@ def order_subsets(angles, blocksize: int, order: str = "angular", seed: int = 0)
     left = list(range(1, len(blocks)))
     while left:
         d = np.abs(np.angle(np.exp(1j * (mean[left][:, None] - mean[used][None, :]))))
-        pick = left[int(np.argmax(d.min(axis=1)))]
+        # Equally spaced angles tie exactly in theory but not in float rounding: round, then
+        # break ties by the distance from the last subset, so that consecutive updates stay
+        # far apart whatever the rounding of this machine.
+        far_from_all = np.round(d.min(axis=1), 9)
+        far_from_last = np.round(d[:, -1], 9)
+        pick = left[int(np.lexsort((-far_from_last, -far_from_all))[0])]
         used.append(pick)
         left.remove(pick)
     return [blocks[i] for i in used]
