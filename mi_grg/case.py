@@ -23,6 +23,10 @@ class Case:
                      Densities are not affected by it.
         info:        what produced the data (phantom, noise model and parameters, ...),
                      echoed into metrics.json.
+        clamped:     what ``load_case`` repaired: per split ("proj_train", "proj_test"),
+                     ``{"count": values set to 0, "min": most negative value, "tolerance":
+                     NEG_TOL_REL x max}`` in file units; empty when nothing was clamped.
+                     Echoed into metrics.json; not written by ``save_case``.
     """
 
     geometry: Geometry
@@ -32,6 +36,7 @@ class Case:
     vol_gt: np.ndarray | None = None
     scene_scale: float = 1.0
     info: dict = field(default_factory=dict)
+    clamped: dict = field(default_factory=dict)
 
     @property
     def test_geometry(self) -> Geometry:

@@ -22,46 +22,121 @@ def _parse_options(items) -> dict:
     return out
 
 
-def cmd_simulate(args) -> int:
+#: The data set's copy of the scan it simulated (load it with ``simulate --scene``).
+SCENE_XML = "scene.xml"
+
+#: simulate's flags that a scene file states itself: attribute -> (flag, where in the scene).
+#: With --scene they are errors, so that the data never differ from what the file says.
+_SCENE_FIELDS = {
+    "phantom": ("--phantom", '<string name="phantom"> of <medium type="ct_phantom">'),
+    "seed": ("--seed", '<integer name="seed"> of <medium type="ct_phantom"> (random '
+                       'phantoms; it also seeds the noise)'),
+    "n": ("--n", 'nVoxel of <sensor type="ct_scanner">'),
+    "det": ("--det", 'nDetector of <sensor type="ct_scanner">'),
+    "mode": ("--mode", 'mode of <sensor type="ct_scanner">'),
+    "no_noise": ("--no-noise", 'noise="none" of <sensor type="ct_scanner">'),
+    "I0": ("--I0", 'I0 of <sensor type="ct_scanner"> (with noise="poisson+gaussian")'),
+    "electronic_std": ("--electronic-std", 'electronic_std of <sensor type="ct_scanner"> '
+                                           '(with noise="poisson+gaussian")'),
+}
+
+
+def _refuse_scene_conflicts(args) -> None:
+    """SystemExit naming every flag given together with --scene that the scene states."""
+    given = [k for k in _SCENE_FIELDS if getattr(args, k, None) is not None]
+    if given:
+        where = "; ".join(f"{_SCENE_FIELDS[k][0]} -> {_SCENE_FIELDS[k][1]}" for k in given)
+        raise SystemExit(f"{', '.join(_SCENE_FIELDS[k][0] for k in given)} cannot be combined "
+                         f"with --scene {args.scene}: the scene file states "
+                         f"{'it' if len(given) == 1 else 'them'} ({where}). Edit the scene "
+                         "file instead (or leave out --scene).")
+
+
+def _check_simulable(scan, path) -> None:
+    """simulate computes exact line integrals of an analytic phantom; refuse a scene that
+    asks for anything else rather than leave part of it silently unused."""
+    from .scene import _tag_of
+    unused = [f"<{_tag_of(o['type'], 'object')} type=\"{o['type']}\">"
+              for o in ([scan.integrator] if scan.integrator else []) + list(scan.other)]
+    if unused:
+        raise SystemExit(
+            f"{path} declares {', '.join(unused)}, which `mi-grg simulate` would not use: it "
+            "computes exact closed-form line integrals of the phantom. Render this scene with "
+            f"`mi-grg render {path} --out DIR`, or remove them from the scene to simulate it.")
+    kind = scan.object.get("type")
+    if kind != "ct_phantom":
+        raise SystemExit(f"{path}: `mi-grg simulate` needs <medium type=\"ct_phantom\"> inside "
+                         f"the ct_scanner sensor (an analytic phantom), got "
+                         f"{'no medium' if kind is None else repr(kind)}")
+
+
+def _default_scan(args):
+    """The scan that the flags describe (no --scene), as a ``Scan`` and the seed."""
     import numpy as np
+    from .scene import DEFAULT_ELECTRONIC_STD, DEFAULT_I0, Scan
+    from .simulate import default_geometry, default_test_angles
+
+    noise_flags = [f for k, f in (("I0", "--I0"), ("electronic_std", "--electronic-std"))
+                   if getattr(args, k) is not None]
+    if args.no_noise and noise_flags:
+        raise SystemExit(f"{' and '.join(noise_flags)} set the noise model, which --no-noise "
+                         "turns off; give one or the other")
+    geometry = default_geometry(n=64 if args.n is None else args.n,
+                                det=96 if args.det is None else args.det,
+                                views=25 if args.views is None else args.views,
+                                mode=args.mode or "cone")
+    test_views = 25 if args.test_views is None else args.test_views
+    test_angles = default_test_angles(test_views) if test_views else np.zeros(0)
+    phantom = args.phantom or "shepp"
+    seed = 0 if args.seed is None else args.seed
+    noise = None if args.no_noise else {
+        "model": "poisson+gaussian",
+        "I0": DEFAULT_I0 if args.I0 is None else float(args.I0),
+        "electronic_std": (DEFAULT_ELECTRONIC_STD if args.electronic_std is None
+                           else float(args.electronic_std))}
+    obj = {"type": "ct_phantom", "phantom": phantom}
+    if phantom != "shepp":          # ct_phantom refuses a seed for the fixed Shepp-Logan head
+        obj["seed"] = int(seed)
+    elif seed != 0:
+        # The scene format has no noise seed of its own; shepp's noise seed stays 0 there.
+        print(f"note: {SCENE_XML} cannot state --seed {seed} for phantom 'shepp' (ct_phantom "
+              "takes no seed for it); `simulate --scene` of it draws the noise with seed 0",
+              file=sys.stderr)
+    return Scan(geometry=geometry, test_angles=test_angles, noise=noise, object=obj), seed
+
+
+def cmd_simulate(args) -> int:
     from .dataset import save_case
     from .noise import NoiseModel
-    from .simulate import default_geometry, default_test_angles, simulate_case
+    from .scene import load_scan, scan_to_xml
+    from .simulate import simulate_case
 
     if args.scene:
-        from .scene import load_scan
+        _refuse_scene_conflicts(args)
+        # --views / --test-views are overrides that load_scan applies to the scan itself, so
+        # they reach the data set's scene.xml and metrics like any scene field.
         overrides = {k: v for k, v in (("views", args.views), ("test_views", args.test_views))
                      if v is not None}
         scan = load_scan(args.scene, overrides or None)
-        geometry, test_angles = scan.geometry, scan.test_angles
-        if args.n is not None or args.det is not None or args.mode is not None:
-            raise SystemExit("--n/--det/--mode describe the scanner; with --scene edit the XML "
-                             "(or leave out --scene)")
-        phantom = args.phantom or scan.object.get("phantom")
-        if phantom is None:
-            raise SystemExit(f"{args.scene} names no phantom; pass --phantom")
-        noise = NoiseModel(I0=scan.noise["I0"], electronic_std=scan.noise["electronic_std"]) \
-            if scan.noise else None
-        if args.no_noise:
-            noise = None
-        seed = scan.object.get("seed", args.seed)
-        scene_info = scan.info()
+        _check_simulable(scan, args.scene)
+        seed = int(scan.object.get("seed", 0))
     else:
-        geometry = default_geometry(n=args.n or 64, det=args.det or 96,
-                                    views=args.views or 25, mode=args.mode or "cone")
-        test_views = 25 if args.test_views is None else args.test_views
-        test_angles = default_test_angles(test_views) if test_views else np.zeros(0)
-        phantom = args.phantom or "shepp"
-        noise = None if args.no_noise else NoiseModel(I0=args.I0, electronic_std=args.electronic_std)
-        seed, scene_info = args.seed, None
+        scan, seed = _default_scan(args)
+    xml = scan_to_xml(scan)        # before simulating: a scan that cannot be written fails early
+    noise = (NoiseModel(I0=scan.noise["I0"], electronic_std=scan.noise["electronic_std"])
+             if scan.noise else None)
     t0 = time.perf_counter()
-    case = simulate_case(phantom, geometry, test_angles, noise, seed=seed)
-    if scene_info is not None:
-        case.info["scene"] = scene_info
+    case = simulate_case(scan.object["phantom"], scan.geometry, scan.test_angles, noise,
+                         seed=seed)
+    case.info["scene"] = scan.info()          # echoed into metrics.json by reconstruct
+    case.info["scene_xml"] = SCENE_XML
     out = save_case(case, args.out, exr=args.exr)
-    print(f"wrote {out} ({geometry.n_views} train / {len(test_angles)} test views, "
-          f"{'x'.join(map(str, geometry.nVoxel))} volume, noise "
-          f"{'off' if noise is None else noise.to_dict()}) in {time.perf_counter() - t0:.1f} s")
+    (out / SCENE_XML).write_text(xml)
+    geometry = scan.geometry
+    print(f"wrote {out} ({geometry.n_views} train / {len(scan.test_angles)} test views, "
+          f"{'x'.join(map(str, geometry.nVoxel))} volume, phantom {scan.object['phantom']}, "
+          f"noise {'off' if noise is None else noise.to_dict()}, seed {seed}; scan as "
+          f"{out / SCENE_XML}) in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -91,9 +166,10 @@ def cmd_demo(args) -> int:
     from .methods import reconstruct
     out = Path(args.out)
     data = out / "shepp_64"
+    # None = the flag's default (TIGRE's noise: I0 1e4, electronic std 10; seed 0)
     sim = argparse.Namespace(scene=None, phantom="shepp", n=args.n, det=args.det, views=25,
-                             test_views=25, mode="cone", no_noise=False, I0=1e4,
-                             electronic_std=10.0, seed=0, out=str(data), exr=False)
+                             test_views=25, mode="cone", no_noise=None, I0=None,
+                             electronic_std=None, seed=None, out=str(data), exr=False)
     cmd_simulate(sim)
     rows = []
     for method in args.methods.split(","):
@@ -107,23 +183,30 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .phantoms import PHANTOMS
     p = argparse.ArgumentParser(prog="mi-grg", description=__doc__)
     p.add_argument("--variant", default=None, choices=("llvm_ad_mono", "cuda_ad_mono"),
                    help="Dr.Jit/Mitsuba variant (default: llvm_ad_mono, or $MI_GRG_VARIANT)")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="simulate a data set (R2-Gaussian layout)")
-    s.add_argument("--scene", help="scene XML describing scanner, phantom and noise")
-    s.add_argument("--phantom", help="shepp | needles | shells")
+    # Defaults are None so that cmd_simulate can tell a flag given from one left out:
+    # with --scene, the flags that the scene states are errors (see _SCENE_FIELDS).
+    s.add_argument("--scene", help="scene XML describing scanner, phantom and noise; then "
+                   "only --views/--test-views may override it")
+    s.add_argument("--phantom", choices=PHANTOMS, help="default shepp")
     s.add_argument("--n", type=int, help="voxels per axis (default 64)")
     s.add_argument("--det", type=int, help="detector pixels per axis (default 96)")
     s.add_argument("--views", type=int, help="training views (default 25)")
     s.add_argument("--test-views", type=int, help="noise-free test views (default 25)")
     s.add_argument("--mode", choices=("cone", "parallel"), help="beam (default cone)")
-    s.add_argument("--no-noise", action="store_true", help="noise-free training views")
-    s.add_argument("--I0", type=float, default=1e4, help="photons per pixel (Poisson)")
-    s.add_argument("--electronic-std", type=float, default=10.0, help="Gaussian noise std (counts)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--no-noise", action="store_true", default=None,
+                   help="noise-free training views")
+    s.add_argument("--I0", type=float, help="photons per pixel, Poisson (default 1e4)")
+    s.add_argument("--electronic-std", type=float,
+                   help="Gaussian electronic noise std, photon counts (default 10)")
+    s.add_argument("--seed", type=int, help="phantom (needles, shells) and noise seed "
+                   "(default 0)")
     s.add_argument("--exr", action="store_true", help="also write projections as OpenEXR")
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_simulate)

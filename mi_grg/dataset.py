@@ -14,6 +14,8 @@ Layout of a case directory ``DIR`` (R2-Gaussian's ``readBlenderInfo`` / ``genera
                           "mi_grg": {...}}                        # our Case.info; R2 ignores it
     DIR/proj_*/...npy    float32 [v, u] line integrals (or .exr, single channel "Y")
     DIR/vol_gt.npy       float32 density [x, y, z]
+    DIR/scene.xml        the simulated scan as scene XML (``mi-grg simulate`` writes it;
+                         not part of R2's layout, and load_case does not read it)
 
 Units: files hold the data set's own units. ``load_case(rescale=True)`` multiplies every
 length AND every projection by ``scene_scale = 2 / max(sVoxel)`` (R2-Gaussian does the same
@@ -139,8 +141,11 @@ def _angle(entry, where: str) -> float:
     return float(a)
 
 
-def _check_stack(stack: np.ndarray, split: str) -> np.ndarray:
-    """Finite and (up to noise) non-negative; small negatives are clamped (see NEG_TOL_REL)."""
+def _check_stack(stack: np.ndarray, split: str):
+    """Finite and (up to noise) non-negative; small negatives are clamped (see NEG_TOL_REL).
+
+    Returns (stack, clamp record): the record is ``{}`` or ``{"count", "min", "tolerance"}``
+    (file units), so that the repair is echoed into metrics.json, not only warned about."""
     if not np.all(np.isfinite(stack)):
         bad = np.argwhere(~np.isfinite(stack))[0]
         raise DatasetError(f"{split}: projections contain NaN/Inf (first at [view, v, u] = "
@@ -161,11 +166,13 @@ def _check_stack(stack: np.ndarray, split: str) -> np.ndarray:
                       f"tolerance {tol:.3g} = {NEG_TOL_REL} x max) to 0", DatasetWarning,
                       stacklevel=3)
         stack = np.maximum(stack, 0, out=stack)
-    return stack
+        return stack, {"count": n_neg, "min": low, "tolerance": tol}
+    return stack, {}
 
 
 def _read_split(root: Path, meta: dict, split: str, geo_shape, required: bool):
-    """Angles [view] and projections [view, v, u] float32 (file units) of one split."""
+    """Angles [view], projections [view, v, u] float32 (file units) and the clamp record
+    (see ``_check_stack``) of one split."""
     key = "proj_" + split
     entries = meta.get(key, [])
     if entries is None:
@@ -177,7 +184,7 @@ def _read_split(root: Path, meta: dict, split: str, geo_shape, required: bool):
         if required:
             raise DatasetError(f"{root / META_NAME}: '{key}' is empty or missing; at least one "
                                "training projection is needed")
-        return np.zeros(0), None
+        return np.zeros(0), None, {}
     angles = np.array([_angle(e, f"{key}[{i}]") for i, e in enumerate(entries)])
     stack = np.empty((len(entries), *geo_shape), np.float32)
     for i, e in enumerate(entries):
@@ -187,7 +194,8 @@ def _read_split(root: Path, meta: dict, split: str, geo_shape, required: bool):
             raise DatasetError(f"{key}[{i}]: {path} has shape {list(img.shape)}, expected "
                                f"[v, u] = {list(geo_shape)} (scanner nDetector)")
         stack[i] = img
-    return angles, _check_stack(stack, key)
+    stack, clamp = _check_stack(stack, key)
+    return angles, stack, clamp
 
 
 # ---------------------------------------------------------------- load
@@ -208,7 +216,8 @@ def load_case(path, rescale: bool = True) -> Case:
     Raises:
         DatasetError naming the file/field: missing files, shapes that disagree with
         nDetector / nVoxel, NaN/Inf, line integrals below ``-NEG_TOL_REL x max``, empty
-        proj_train, non-numeric angles. Small negatives are clamped with a DatasetWarning.
+        proj_train, non-numeric angles. Small negatives are clamped with a DatasetWarning
+        and recorded in ``case.clamped`` (per split: count, min, tolerance; file units).
     """
     root = Path(path)
     if root.is_file() and root.name.endswith(".json"):
@@ -228,8 +237,9 @@ def load_case(path, rescale: bool = True) -> Case:
         nv_nu = Geometry.from_scanner_dict(scanner, [0.0]).nDetector
     except GeometryError as e:
         raise DatasetError(f"{meta_path}: scanner: {e}") from e
-    train_angles, train = _read_split(root, meta, "train", nv_nu, required=True)
-    test_angles, test = _read_split(root, meta, "test", nv_nu, required=False)
+    train_angles, train, train_clamp = _read_split(root, meta, "train", nv_nu, required=True)
+    test_angles, test, test_clamp = _read_split(root, meta, "test", nv_nu, required=False)
+    clamped = {k: v for k, v in (("proj_train", train_clamp), ("proj_test", test_clamp)) if v}
     try:
         geo = Geometry.from_scanner_dict(scanner, train_angles)
     except GeometryError as e:
@@ -268,7 +278,7 @@ def load_case(path, rescale: bool = True) -> Case:
         if test is not None:
             test *= np.float32(scale)
     return Case(geometry=geo, train=train, test_angles=test_angles, test=test, vol_gt=vol,
-                scene_scale=float(scale), info=info)
+                scene_scale=float(scale), info=info, clamped=clamped)
 
 
 # ---------------------------------------------------------------- save

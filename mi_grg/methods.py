@@ -3,7 +3,8 @@
 ``reconstruct(case, method, out_dir)`` runs a method on a ``Case`` and writes
     OUT/vol_pred.npy   float32 [x, y, z], same shape, axis order and units as vol_gt.npy
     OUT/metrics.json   method, options, wall-clock seconds, psnr_3d / ssim_3d (with a
-                       ground truth), what the data set simulated, variant and machine
+                       ground truth), the scanner geometry, what the data set simulated,
+                       what load_case clamped, variant and machine
     OUT/slices.png     central orthogonal slices: prediction, ground truth, |error|
 A method is a function ``(case, **options) -> np.ndarray [x, y, z]`` or
 ``-> (np.ndarray, info dict)``; unknown options raise. A method that takes an ``out_dir``
@@ -65,6 +66,16 @@ def machine_info() -> dict:
             "python": platform.python_version()}
 
 
+def geometry_info(case: Case) -> dict:
+    """The scan the method saw, in the data set's (file) units as meta_data.json states it:
+    TIGRE scanner fields, the number of training/test angles and R2-Gaussian's
+    ``scene_scale`` (the factor the method's lengths and projections were multiplied by)."""
+    s = float(case.scene_scale)
+    g = case.geometry if s == 1.0 else case.geometry.scaled(1.0 / s)   # as save_case does
+    return {**g.to_scanner_dict(), "n_angles": int(g.n_views),
+            "n_test_angles": int(len(case.test_angles)), "scene_scale": s}
+
+
 def score(pred: np.ndarray, gt: np.ndarray) -> dict:
     """3-D PSNR / SSIM in the R2-Gaussian convention (data range 1)."""
     from .metrics import psnr_3d, ssim_3d
@@ -96,6 +107,9 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
         raise RuntimeError(f"method {method!r} returned NaN/Inf voxels")
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
+               "geometry": geometry_info(case),
+               # {} says that nothing was clamped; see mi_grg.dataset.NEG_TOL_REL
+               "clamped_negatives": dict(case.clamped),
                "data": case.info, "machine": machine_info()}
     if info is not None:
         metrics["method_info"] = info

@@ -318,3 +318,163 @@ def test_save_validates_case(tmp_path, rng):
         save_case(Case(geometry=case.geometry, train=case.train, info={"x": object()}),
                   tmp_path)
     assert not (tmp_path / "meta_data.json").exists()
+
+
+# ---------------------------------------------------------------- malformed files
+def _set_meta_text(text):
+    return lambda root: (root / "meta_data.json").write_text(text)
+
+
+def _meta_edit(fn):
+    return lambda root: _edit_meta(root, fn)
+
+
+def _replace_file(rel, writer):
+    """Point proj_train[1] (or write ``rel``) at a file written by ``writer(path)``."""
+    def mutate(root):
+        writer(root / rel)
+        if rel.startswith("proj_train/") and not rel.endswith("_0001.npy"):
+            _edit_meta(root, lambda m: m["proj_train"][1].update(file_path=rel))
+    return mutate
+
+
+def _load(root):
+    load_case(root)
+
+
+def _write_exr_of(shape):
+    return lambda root: write_exr(root / "bad.exr", np.zeros(shape, np.float32))
+
+
+def _read_exr_of(make):
+    def call(root):
+        make(root / "x.exr")
+        read_exr(root / "x.exr")
+    return call
+
+
+def _two_channel_exr(path):
+    import OpenEXR
+    img = np.zeros((NV, NU), np.float32)
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"R": img, "G": img}).write(str(path))
+
+
+# (id, mutate the R2 case, action on the case directory, message pattern naming the
+# file or field)
+BAD_INPUTS = [
+    ("invalid-json", _set_meta_text('{"scanner": {'), _load,
+     r"meta_data.json: not valid JSON"),
+    ("json-not-an-object", _set_meta_text("[1, 2]"), _load,
+     r"meta_data.json: lacks the 'scanner' object"),
+    ("no-scanner", _meta_edit(lambda m: m.pop("scanner")), _load,
+     r"meta_data.json: lacks the 'scanner' object"),
+    ("scanner-not-an-object", _meta_edit(lambda m: m.update(scanner=[7.0, 5.0])), _load,
+     r"meta_data.json: lacks the 'scanner' object"),
+    ("scanner-field-missing", _meta_edit(lambda m: m["scanner"].pop("nDetector")), _load,
+     r"meta_data.json: scanner: .*nDetector"),
+    ("proj-train-not-a-list", _meta_edit(lambda m: m.update(proj_train={"0": "a.npy"})), _load,
+     r"meta_data.json: 'proj_train' must be a list, got dict"),
+    ("proj-test-not-a-list", _meta_edit(lambda m: m.update(proj_test="proj_test")), _load,
+     r"meta_data.json: 'proj_test' must be a list, got str"),
+    ("entry-without-file-path", _meta_edit(lambda m: m["proj_train"][1].pop("file_path")),
+     _load, r"proj_train\[1\] lacks 'file_path'"),
+    ("entry-without-angle", _meta_edit(lambda m: m["proj_test"][0].pop("angle")), _load,
+     r"proj_test\[0\] lacks 'angle'"),
+    ("entry-not-an-object", _meta_edit(lambda m: m["proj_train"].__setitem__(0, "a.npy")),
+     _load, r"proj_train\[0\] must be an object with file_path and angle"),
+    ("file-path-empty", _meta_edit(lambda m: m["proj_train"][0].update(file_path="")), _load,
+     r"proj_train\[0\]\.file_path must be a non-empty path"),
+    ("file-path-not-a-string", _meta_edit(lambda m: m["proj_train"][0].update(file_path=3)),
+     _load, r"proj_train\[0\]\.file_path must be a non-empty path"),
+    ("unknown-suffix", _replace_file("proj_train/p.png", lambda p: p.write_bytes(b"\x89PNG")),
+     _load, r"proj_train\[1\]: .*p\.png must be \.npy or \.exr"),
+    ("corrupt-npy", _replace_file("proj_train/proj_train_0001.npy",
+                                  lambda p: p.write_bytes(b"not an npy file")),
+     _load, r"proj_train\[1\]: cannot read .*proj_train_0001\.npy as \.npy"),
+    ("pickled-npy", _replace_file("proj_train/proj_train_0001.npy",
+                                  lambda p: np.save(p, np.full((NV, NU), None, object))),
+     _load, r"proj_train\[1\]: cannot read .*proj_train_0001\.npy as \.npy"),
+    ("string-dtype", _replace_file("proj_train/proj_train_0001.npy",
+                                   lambda p: np.save(p, np.full((NV, NU), "0.5"))),
+     _load, r"proj_train\[1\]: .*proj_train_0001\.npy must hold real numbers, got dtype <U3"),
+    ("complex-dtype", _replace_file("proj_train/proj_train_0001.npy",
+                                    lambda p: np.save(p, np.ones((NV, NU), np.complex64))),
+     _load, r"proj_train\[1\]: .*must hold real numbers, got dtype complex64"),
+    ("bool-dtype", _replace_file("proj_train/proj_train_0001.npy",
+                                 lambda p: np.save(p, np.ones((NV, NU), bool))),
+     _load, r"proj_train\[1\]: .*must hold real numbers, got dtype bool"),
+    ("corrupt-exr", _replace_file("proj_train/p.exr", lambda p: p.write_bytes(b"v/1\x01junk")),
+     _load, r"p\.exr: cannot read as OpenEXR"),
+    ("corrupt-vol", _replace_file("vol_gt.npy", lambda p: p.write_bytes(b"\x93NUMPY junk")),
+     _load, r"vol: cannot read .*vol_gt\.npy as \.npy"),
+    ("our-block-not-an-object", _meta_edit(lambda m: m.update(mi_grg=[1])), _load,
+     r"meta_data.json: 'mi_grg' must be an object"),
+    ("write-exr-3d", None, _write_exr_of((2, NV, NU)),
+     r"bad\.exr: an EXR image must be 2-D \[v, u\], got shape \(2, 6, 8\)"),
+    ("write-exr-1d", None, _write_exr_of((NU,)),
+     r"bad\.exr: an EXR image must be 2-D \[v, u\], got shape \(8,\)"),
+    ("write-exr-empty", None, _write_exr_of((0, NU)),
+     r"bad\.exr: an EXR image must be 2-D \[v, u\], got shape \(0, 8\)"),
+    ("read-exr-missing", None, lambda root: read_exr(root / "none.exr"),
+     r"none\.exr: EXR file not found"),
+    ("read-exr-two-channels", None, _read_exr_of(_two_channel_exr),
+     r"x\.exr: expected one channel 'Y', found \['G', 'R'\]"),
+]
+
+
+@pytest.mark.parametrize("mutate, action, pattern", [b[1:] for b in BAD_INPUTS],
+                         ids=[b[0] for b in BAD_INPUTS])
+def test_bad_input_names_the_file_or_field(tmp_path, rng, mutate, action, pattern):
+    _write_r2_case(tmp_path, rng)
+    load_case(tmp_path)                  # the untouched case loads: the mutation is the fault
+    if mutate is not None:
+        mutate(tmp_path)
+    with pytest.raises(DatasetError, match=pattern):
+        action(tmp_path)
+
+
+# ---------------------------------------------------------------- echoed into metrics.json
+def test_clamp_is_recorded_per_split_and_echoed_into_metrics(tmp_path, rng):
+    from mi_grg.methods import reconstruct, register_method
+    projs = _stack_with_negative(rng, -0.5 * NEG_TOL_REL)
+    projs["proj_test"][0][1, 1] = -1e-4 * projs["proj_test"][0].max()
+    _write_r2_case(tmp_path, rng, projs=projs)
+    with pytest.warns(DatasetWarning):
+        got = load_case(tmp_path)
+    peak = max(p.max() for p in projs["proj_train"])
+    assert set(got.clamped) == {"proj_train", "proj_test"}
+    train = got.clamped["proj_train"]
+    assert train["count"] == 2
+    assert train["min"] == pytest.approx(float(np.float32(-0.5 * NEG_TOL_REL * peak)))
+    assert train["tolerance"] == pytest.approx(NEG_TOL_REL * peak)
+    assert got.clamped["proj_test"]["count"] == 1
+    register_method("zeros", lambda c: np.zeros(c.geometry.nVoxel, np.float32))
+    _, metrics = reconstruct(got, "zeros", tmp_path / "out")
+    saved = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["clamped_negatives"] == saved["clamped_negatives"] == got.clamped
+    # the repair is not written back as data: a re-saved case carries no clamp record
+    save_case(got, tmp_path / "again")
+    assert load_case(tmp_path / "again").clamped == {}
+
+
+def test_unclamped_case_records_nothing(tmp_path, rng):
+    _write_r2_case(tmp_path, rng)
+    assert load_case(tmp_path).clamped == {}
+
+
+def test_metrics_echo_the_geometry_in_file_units(tmp_path, rng):
+    from mi_grg.methods import reconstruct, register_method
+    case = _case(rng)                   # lengths in mm: load_case rescales by 2 / 320
+    save_case(case, tmp_path)
+    got = load_case(tmp_path)
+    assert got.scene_scale != 1.0
+    register_method("zeros", lambda c: np.zeros(c.geometry.nVoxel, np.float32))
+    reconstruct(got, "zeros", tmp_path / "out")
+    geo = json.loads((tmp_path / "out" / "metrics.json").read_text())["geometry"]
+    f = case.geometry
+    assert geo["mode"] == f.mode and geo["nDetector"] == list(f.nDetector)
+    assert geo["nVoxel"] == list(f.nVoxel)
+    for k in ("DSD", "DSO", "sDetector", "sVoxel", "offOrigin", "offDetector"):
+        np.testing.assert_allclose(geo[k], getattr(f, k), rtol=1e-12, err_msg=k)
+    assert geo["n_angles"] == 3 and geo["n_test_angles"] == 2
+    assert geo["scene_scale"] == pytest.approx(2.0 / 320.0)
