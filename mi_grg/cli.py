@@ -145,6 +145,8 @@ def cmd_reconstruct(args) -> int:
     options = _parse_options(args.option)
     if args.config:
         options["config"] = args.config
+    if args.resume:
+        options["resume"] = True
     vol, metrics = reconstruct(args.data, args.method, args.out, **options)
     summary = f"{args.method}: {metrics['seconds']:.1f} s"
     if "psnr_3d" in metrics:
@@ -218,6 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", help="method config (scene XML), for methods that take one")
     r.add_argument("--option", action="append", metavar="KEY=VALUE",
                    help="method option, repeatable (e.g. --option n_iter=20)")
+    r.add_argument("--resume", action="store_true",
+                   help="r2 / gr: continue from OUT/checkpoint.npz (same options required)")
     r.set_defaults(func=cmd_reconstruct)
 
     q = sub.add_parser("render", help="path-traced cross-check of a scene (volpath vs projector)")
@@ -244,7 +248,12 @@ def main(argv=None) -> int:
     import mi_grg
     if args.variant:
         mi_grg.set_variant(args.variant)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError) as e:
+        # Bad input (our errors name the field or file): one line, not a traceback.
+        print(f"mi-grg {args.command}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

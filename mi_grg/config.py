@@ -72,7 +72,8 @@ class TrainConfig:
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
-    log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no effect)
+    log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no
+                                   # effect on training); 0: at each held-out evaluation
     # --- bookkeeping
     checkpoint_every: int = 500
 
@@ -91,6 +92,10 @@ class TrainConfig:
             raise ConfigError("lr_final_ratio must be in (0, 1]")
         if self.n_points < 1:
             raise ConfigError("n_points must be >= 1")
+        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval")
+                if getattr(self, n) < 1]
+        if zero:
+            raise ConfigError(f"must be >= 1 (iterations): {', '.join(zero)}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

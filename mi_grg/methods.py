@@ -92,7 +92,15 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
         from .dataset import load_case
         case = load_case(case)
     func = get_method(method)
-    if out_dir is not None and "out_dir" in inspect.signature(func).parameters:
+    params = inspect.signature(func).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        # Say which option is wrong here rather than let a TypeError escape from the call.
+        unknown = sorted(set(options) - set(params))
+        if unknown:
+            takes = sorted(k for k in params if k not in ("case", "out_dir"))
+            raise ValueError(f"method {method!r} does not take option(s) {unknown}; its "
+                             f"options are {takes}")
+    if out_dir is not None and "out_dir" in params:
         options = {**options, "out_dir": str(out_dir)}
     t0 = time.perf_counter()
     result = func(case, **options)

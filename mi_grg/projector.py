@@ -180,6 +180,58 @@ def _check_finite(name, arr, shape_txt):
         raise ProjectorError(f"{name} {shape_txt} contains NaN or Inf")
 
 
+def unit_quaternions(q):
+    """q / |q| (differentiable). Used by the projector and the voxelizer, so that the
+    rotation gradient is tangent to the unit sphere and R(q) is a rotation exactly."""
+    return q * dr.rsqrt(dr.squared_norm(q))
+
+
+def gaussian_checks(g: Gaussians, density_scale=None) -> list:
+    """Per-Gaussian validity tests shared by the projector and the voxelizer, in reporting
+    order: [(bad lanes, message)]. Lazy; ``first_failure`` evaluates them all at once.
+    Widths must already agree (density_scale included)."""
+    p, s, q, rho = (dr.detach(a) for a in (g.positions, g.scales, g.rotations, g.densities))
+
+    def nonfinite(*comps):
+        bad = ~dr.isfinite(comps[0])
+        for c in comps[1:]:
+            bad |= ~dr.isfinite(c)
+        return bad
+
+    qn = dr.squared_norm(q)
+    checks = [
+        (nonfinite(p.x, p.y, p.z), "gaussians.positions [N, 3] contains NaN or Inf"),
+        (nonfinite(s.x, s.y, s.z), "gaussians.scales [N, 3] contains NaN or Inf"),
+        (nonfinite(q.x, q.y, q.z, q.w), "gaussians.rotations [N, 4] (w, x, y, z) contains NaN or Inf"),
+        (nonfinite(rho), "gaussians.densities [N] contains NaN or Inf"),
+        (dr.minimum(dr.minimum(s.x, s.y), s.z) <= 0,
+         "gaussians.scales must be > 0 (standard deviations, length unit)"),
+        (rho < 0, "gaussians.densities must be >= 0"),
+        (qn == 0, "gaussians.rotations contains a zero quaternion (w, x, y, z)"),
+        (dr.abs(dr.sqrt(qn) - 1) > QUATERNION_TOL,
+         f"gaussians.rotations must be unit quaternions (w, x, y, z), | |q| - 1 | <= "
+         f"{QUATERNION_TOL}; unnormalised quaternions given (normalise them first)"),
+    ]
+    if density_scale is not None:
+        checks.append((nonfinite(dr.detach(density_scale)), "density_scale [N] contains NaN or Inf"))
+    return checks
+
+
+def first_failure(g: Gaussians, checks: list):
+    """The message of the first check (in list order) that fails for any Gaussian, or None.
+
+    One kernel and one host synchronisation for all checks (this runs on every training
+    iteration): each lane's first failing check index, min-reduced over the lanes. The
+    Gaussians' own arrays are evaluated by the same kernel, so later kernels reuse them."""
+    code = mi.UInt32(len(checks))
+    for k in reversed(range(len(checks))):
+        code = dr.select(checks[k][0], k, code)
+    dr.schedule(dr.detach(g.positions), dr.detach(g.scales), dr.detach(g.rotations),
+                dr.detach(g.densities))
+    k = int(dr.min(code)[0])
+    return checks[k][1] if k < len(checks) else None
+
+
 def _validate(g: Gaussians, n: int, density_scale, means2d, n_views: int):
     for name, arr, k in (("positions", g.positions, 3), ("scales", g.scales, 3),
                          ("rotations", g.rotations, 4)):
@@ -188,22 +240,11 @@ def _validate(g: Gaussians, n: int, density_scale, means2d, n_views: int):
         for comp in arr:
             if dr.width(comp) != n:
                 raise ProjectorError(f"gaussians.{name} has {dr.width(comp)} entries, densities has {n}")
-    for name, arr, shp in (("positions", g.positions, "[N, 3]"), ("scales", g.scales, "[N, 3]"),
-                           ("rotations", g.rotations, "[N, 4] (w, x, y, z)"),
-                           ("densities", g.densities, "[N]")):
-        _check_finite(f"gaussians.{name}", dr.detach(arr), shp)
-    if not bool(dr.all(dr.detach(dr.minimum(dr.minimum(g.scales.x, g.scales.y), g.scales.z)) > 0, axis=None)):
-        raise ProjectorError("gaussians.scales must be > 0 (standard deviations, length unit)")
-    if not bool(dr.all(dr.detach(g.densities) >= 0, axis=None)):
-        raise ProjectorError("gaussians.densities must be >= 0")
-    qn = dr.detach(dr.squared_norm(g.rotations))
-    if not bool(dr.all(dr.abs(dr.sqrt(qn) - 1) <= QUATERNION_TOL, axis=None)):
-        raise ProjectorError("gaussians.rotations must be unit quaternions (w, x, y, z), "
-                             f"| |q| - 1 | <= {QUATERNION_TOL}; zero or unnormalised quaternions given")
-    if density_scale is not None:
-        if dr.width(density_scale) != n:
-            raise ProjectorError(f"density_scale must have shape [N] = [{n}], got {dr.width(density_scale)}")
-        _check_finite("density_scale", dr.detach(density_scale), "[N]")
+    if density_scale is not None and dr.width(density_scale) != n:
+        raise ProjectorError(f"density_scale must have shape [N] = [{n}], got {dr.width(density_scale)}")
+    msg = first_failure(g, gaussian_checks(g, density_scale))
+    if msg is not None:
+        raise ProjectorError(msg)
     if means2d is not None:
         if len(means2d) != 2 or dr.width(means2d) != n * n_views:
             raise ProjectorError(f"means2d must be a Vector2f of N * views = {n * n_views} entries "
@@ -259,8 +300,7 @@ def _gaussian_arrays(g: Gaussians, density_scale):
     Rotations are normalised here (as ``Gaussians.from_raw`` does), so that Sigma^-1 =
     R S^-2 R^T = Sigma^-1 of ``gaussians.inverse_covariance`` holds exactly and the rotation
     gradient is tangent to the unit sphere."""
-    q = g.rotations * dr.rsqrt(dr.squared_norm(g.rotations))
-    R = rotation_matrix(q)
+    R = rotation_matrix(unit_quaternions(g.rotations))
     rho = g.densities if density_scale is None else g.densities * density_scale
     return {"p": [g.positions.x, g.positions.y, g.positions.z],
             "s": [g.scales.x, g.scales.y, g.scales.z],

@@ -44,10 +44,10 @@ def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
     1500 x sqrt(max(nVoxel) / 64), at least 500: 48^3 -> 1300, 64^3 -> 1500,
-    128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU: a 64^3 case then takes
-    about 4 minutes, and the held-out PSNR is still rising slowly there (the early stop
-    rarely fires first). The schedule (densification window, eval interval) scales with
-    it (``_scaled``).
+    128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU: a 64^3 Shepp-Logan case
+    then takes about 4 (r2) to 6 (gr) minutes, and the held-out PSNR is still rising
+    slowly there (the early stop rarely fires first; docs/benchmarks.md). The schedule
+    (densification window, eval interval) scales with it (``_scaled``).
     """
     return max(500, int(round(1500 * math.sqrt(max(geometry.nVoxel) / 64))))
 
@@ -232,6 +232,9 @@ class Trainer:
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.extent = cfg.extent or None
+        if cfg.monitor_3d and case.vol_gt is None:
+            raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
+                             "this case has none (vol_gt.npy); use the held-out views")
         ckpt = self.out / "checkpoint.npz" if self.out is not None else None
         if resume and ckpt is not None and ckpt.exists():
             self.state = load_checkpoint(ckpt, self.optimizer, self.densifier, cfg)
@@ -389,9 +392,10 @@ class Trainer:
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
+            is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
             want_3d = self.case.vol_gt is not None and (
-                (cfg.log_3d_every and it % cfg.log_3d_every == 0)
-                or (cfg.monitor_3d and it % self.sched["eval_every"] == 0))
+                (it % cfg.log_3d_every == 0 if cfg.log_3d_every else is_eval)
+                or (cfg.monitor_3d and is_eval))
             if want_3d:
                 # Research logging: not counted in the training time.
                 t3 = time.perf_counter()
@@ -399,7 +403,7 @@ class Trainer:
                 row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale()),
                                                self.case.vol_gt))
                 t_start += time.perf_counter() - t3
-            if it % self.sched["eval_every"] == 0 or it == self.iterations:
+            if is_eval:
                 last_psnr = self._heldout_psnr(raw)
                 row["heldout_psnr"] = last_psnr
                 watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr

@@ -37,6 +37,10 @@ rho, p and Sigma^-1; Sigma^-1 comes from ``mi_grg.gaussians.inverse_covariance``
 Dr.Jit's normal AD. The backward pass accumulates each column's gradient in registers
 (one atomic per column and parameter, not per voxel). The truncation boundary is treated
 as fixed (its jump is rho exp(-extent^2/2)).
+
+Inputs are checked as the projector checks them (finite, scales > 0, densities >= 0,
+rotations unit quaternions to ``projector.QUATERNION_TOL``, zero ones rejected), and the
+rotations are normalised internally, so the rotation gradient is tangent to the unit sphere.
 """
 from __future__ import annotations
 
@@ -50,6 +54,9 @@ import mitsuba as mi
 
 from .gaussians import Gaussians, inverse_covariance, rotation_matrix
 from .geometry import Geometry
+# one truncation rule, one set of input checks and one quaternion normalisation for the
+# projector and the voxelizer
+from .projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
 
 
 def _extent_for_mass(mass: float) -> float:
@@ -63,12 +70,6 @@ def _extent_for_mass(mass: float) -> float:
         lo, hi = (mid, hi) if tail(mid) > mass else (lo, mid)
     return 0.5 * (lo + hi)
 
-
-try:  # one truncation rule for projector and voxelizer when the projector defines it
-    from .projector import DEFAULT_EXTENT  # noqa: F401
-except ImportError:
-    #: Truncation radius in Mahalanobis units: the 3-D mass beyond it is < 1e-4 (~4.594).
-    DEFAULT_EXTENT = _extent_for_mass(1e-4)
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
 #: holds <= 2^24 / 9 columns (two UInt32 temporaries each: ~15 MB).
@@ -103,14 +104,6 @@ def _check_block(block, geometry: Geometry):
     return start, size
 
 
-def _check_finite(name, *arrays):
-    bad = mi.Bool(False)
-    for a in arrays:
-        bad = bad | ~dr.isfinite(dr.detach(a))
-    if dr.any(bad):
-        raise VoxelizerError(f"{name} contains NaN or Inf")
-
-
 def _check_inputs(gaussians, extent, density_scale):
     if not isinstance(gaussians, Gaussians):
         raise VoxelizerError(f"gaussians must be mi_grg.gaussians.Gaussians, "
@@ -127,14 +120,6 @@ def _check_inputs(gaussians, extent, density_scale):
             if dr.width(c) != n:
                 raise VoxelizerError(f"{name} must have N={n} rows (shape [N, {len(arr)}]), "
                                      f"got {dr.width(c)}")
-    if n:
-        _check_finite("positions", *g.positions)
-        _check_finite("scales", *g.scales)
-        _check_finite("rotations", *g.rotations)
-        _check_finite("densities", g.densities)
-        s = dr.detach(g.scales)
-        if dr.any((s.x <= 0) | (s.y <= 0) | (s.z <= 0)):
-            raise VoxelizerError("scales must be > 0 (standard deviations, length)")
     if density_scale is not None:
         if not isinstance(density_scale, mi.Float):
             arr = np.asarray(density_scale, np.float32).reshape(-1)
@@ -142,8 +127,12 @@ def _check_inputs(gaussians, extent, density_scale):
         if dr.width(density_scale) != n:
             raise VoxelizerError(f"density_scale must have shape [N] = [{n}] (one factor per "
                                  f"Gaussian), got width {dr.width(density_scale)}")
-        if n:
-            _check_finite("density_scale", density_scale)
+    if n:
+        # the projector's checks (finite, scales > 0, densities >= 0, unit quaternions),
+        # all in one reduction: voxelize_dr runs on every training iteration
+        msg = first_failure(g, gaussian_checks(g, density_scale))
+        if msg is not None:
+            raise VoxelizerError(msg)
     return extent, density_scale
 
 
@@ -443,8 +432,9 @@ def voxelize_dr(gaussians: Gaussians, geometry: Geometry, block=None, extent=Non
         return mi.TensorXf(dr.zeros(mi.Float, n_out), size)
     g = gaussians
     rho = g.densities if density_scale is None else g.densities * density_scale
-    plan = _plan(g.positions, g.scales, g.rotations, geometry, start, size, extent, chunk_pairs)
-    A = inverse_covariance(g.scales, g.rotations)
+    q = unit_quaternions(g.rotations)   # as the projector: gradient tangent to the sphere
+    plan = _plan(g.positions, g.scales, q, geometry, start, size, extent, chunk_pairs)
+    A = inverse_covariance(g.scales, q)
     a = [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
     p = mi.Point3f(g.positions)
     if dr.grad_enabled(p, a, rho):
@@ -472,9 +462,10 @@ def pair_count(gaussians: Gaussians, geometry: Geometry, block=None, extent=None
     if len(g) == 0:
         return {"box_pairs": 0, "pairs": 0}
     with dr.suspend_grad():
-        plan = _plan(g.positions, g.scales, g.rotations, geometry, start, size, extent,
+        q = unit_quaternions(g.rotations)
+        plan = _plan(g.positions, g.scales, q, geometry, start, size, extent,
                      DEFAULT_CHUNK_PAIRS)
-        A = inverse_covariance(g.scales, g.rotations)
+        A = inverse_covariance(g.scales, q)
         a = [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
         pairs = sum(int(dr.sum(c["count"])[0]) for c in _chunks(plan, g.positions, a,
                                                                   g.densities))

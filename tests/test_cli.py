@@ -146,3 +146,26 @@ def test_shepp_seed_that_the_scene_cannot_state_is_reported(tmp_path, capsys):
     main(["simulate", "--seed", "2", "--no-noise", "--n", "8", "--det", "12", "--views", "2",
           "--test-views", "0", "--out", str(tmp_path / "data")])
     assert "cannot state --seed 2 for phantom 'shepp'" in capsys.readouterr().err
+
+
+def test_reconstruct_option_errors_are_one_line(shepp_data, tmp_path, capsys):
+    """An option a method does not take is named, without a traceback (exit code 2)."""
+    assert main(["reconstruct", str(shepp_data), "--method", "fdk", "--resume",
+                 "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "does not take option(s) ['resume']" in err and "Traceback" not in err
+    assert main(["reconstruct", str(shepp_data), "--method", "gr", "--option",
+                 "lamda_lap=1", "--out", str(tmp_path / "b")]) == 2
+    assert "did you mean 'lambda_lap'" in capsys.readouterr().err
+
+
+def test_reconstruct_resume_flag_continues_a_gr_run(shepp_data, tmp_path):
+    out = tmp_path / "gr"
+    opts = ["--option", "iterations=20", "--option", "n_points=300", "--option",
+            "checkpoint_every=10", "--option", "progress=false"]
+    assert main(["reconstruct", str(shepp_data), "--method", "gr", *opts,
+                 "--out", str(out)]) == 0
+    assert main(["reconstruct", str(shepp_data), "--method", "gr", *opts, "--resume",
+                 "--out", str(out)]) == 0
+    info = json.loads((out / "metrics.json").read_text())["method_info"]
+    assert info["init"] == {"resumed_from": 20} and info["iterations_run"] == 20

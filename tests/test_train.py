@@ -1,5 +1,6 @@
 """GR-Gaussian / R2-Gaussian training end to end: quality, outputs, resume, determinism."""
 import csv
+import dataclasses
 
 import drjit as dr
 import numpy as np
@@ -55,7 +56,9 @@ def test_outputs_log_and_plot(tiny_case, tmp_path):
 
 
 def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
-    cfg = make_config("gr", iterations=40, seed=5, **TINY)
+    # 300 iterations: densification every 25 up to 150, held-out evaluations at 125, 250 and
+    # 300; the crash comes at 141, after both, so the checkpoint must carry them.
+    cfg = make_config("gr", iterations=300, seed=5, **TINY)
     full = Trainer(tiny_case, cfg, out_dir=tmp_path / "full", progress=False)
     full.run()
     ref = full.volume()
@@ -63,19 +66,24 @@ def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
     broken = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False)
     step, calls = broken.optimizer.step, [0]
 
-    def crash_after_25(*a, **k):
+    def crash_after_140(*a, **k):
         calls[0] += 1
-        if calls[0] > 25:
+        if calls[0] > 140:
             raise KeyboardInterrupt
         return step(*a, **k)
-    broken.optimizer.step = crash_after_25
+    broken.optimizer.step = crash_after_140
     with pytest.raises(KeyboardInterrupt):
         broken.run()
     resumed = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False, resume=True)
-    assert resumed.state.iteration == 20           # the last checkpoint
+    assert resumed.state.iteration == 140          # the last checkpoint
+    assert [r["iteration"] for r in resumed.state.log if r.get("heldout_psnr")] == [125]
     resumed.run()
     vol = resumed.volume()
-    assert resumed.state.iteration == 40
+    assert resumed.state.iteration == full.state.iteration
+    # Densification after the resume (iterations 150) makes the same decisions up to
+    # Gaussians whose gradient sits at the threshold (float-atomic order): within 2 %.
+    n_full, n_res = full.state.log[-1]["n_gaussians"], resumed.state.log[-1]["n_gaussians"]
+    assert abs(n_res - n_full) <= 0.02 * n_full, (n_res, n_full)
     # Same trajectory up to the order of floating-point atomics: nearly identical volumes.
     err = np.abs(vol - ref).max() / max(np.abs(ref).max(), 1e-6)
     assert err < 2e-2, err
@@ -114,3 +122,44 @@ def test_graph_field_starts_from_the_same_field_as_the_plain_init(tiny_case):
 def test_unknown_option_is_rejected(tiny_case):
     with pytest.raises(ValueError, match="did you mean 'lambda_lap'"):
         mi_grg.reconstruct(tiny_case, "gr", lamda_lap=1.0)
+
+
+def test_early_stop_on_held_out_views_keeps_the_best_state(tiny_case, monkeypatch):
+    """A held-out PSNR that falls by more than stop_drop ends the run before its budget,
+    names the rule, and returns the state of the best evaluation."""
+    # 600 iterations: evaluations every 125; states are judged only after densification
+    # ends (300), so 375 is the first candidate and the drop at 500 stops the run.
+    t = Trainer(tiny_case, make_config("gr", iterations=600, **TINY), progress=False)
+    scores = iter([20.0, 20.0, 20.0, 19.0, 18.0])
+    monkeypatch.setattr(t, "_heldout_psnr", lambda raw: next(scores))
+    kept = {}
+    real_update = t.stopper.update
+
+    def spy(it, value):
+        verdict = real_update(it, value)
+        if verdict == "improved":
+            kept[it] = np.asarray(t.state.raw["raw_densities"]).copy()
+        return verdict
+    monkeypatch.setattr(t.stopper, "update", spy)
+    info = t.run()
+    assert info["iterations_run"] == 500 < info["iterations_planned"]
+    assert "held-out" in info["stopped_by"] and info["best_iteration"] == 375
+    np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), kept[375])
+
+
+def test_3d_psnr_is_logged_at_evaluations_when_there_is_a_ground_truth(tiny_case, tmp_path):
+    t = Trainer(tiny_case, make_config("gr", iterations=130, **TINY), out_dir=tmp_path,
+                progress=False)
+    t.run()
+    rows = list(csv.DictReader(open(tmp_path / "train_log.csv")))
+    logged = [int(r["iteration"]) for r in rows if r["psnr_3d"]]
+    assert logged == [125, 130] and all(float(r["psnr_3d"]) > 5 for r in rows if r["psnr_3d"])
+
+
+def test_config_edge_cases_are_errors(tiny_case):
+    from mi_grg.config import ConfigError
+    with pytest.raises(ConfigError, match="checkpoint_every"):
+        make_config("gr", checkpoint_every=0)
+    no_gt = dataclasses.replace(tiny_case, vol_gt=None)
+    with pytest.raises(ValueError, match="monitor_3d.*ground truth"):
+        Trainer(no_gt, make_config("gr", monitor_3d=True, **TINY), progress=False)

@@ -179,6 +179,57 @@ def test_rejects_bad_input(geo, rng):
         voxelize(g, geo, block=((0, 0, 0), (100, 2, 2)))
     with pytest.raises(VoxelizerError, match="extent"):
         voxelize(g, geo, extent=-1.0)
+    # the projector's checks: zero / non-unit quaternions, negative densities and scales
+    from mi_grg.projector import QUATERNION_TOL, ProjectorError, project
+    q = np.asarray(g.numpy()["rotations"], np.float64)
+    tol = QUATERNION_TOL
+
+    def rot(rows):
+        return mi.Vector4f(*[mi.Float(rows[:, k]) for k in range(4)])
+
+    cases = {
+        "zero quaternion": (dict(rotations=rot(np.vstack([q[:2], np.zeros((1, 4))]))),
+                            "rotations contains a zero quaternion"),
+        "|q| = 2": (dict(rotations=rot(q * 2.0)), "rotations must be unit"),
+        "|q| = 1 - 3 tol": (dict(rotations=rot(q * np.array([[1.0], [1 - 3 * tol], [1.0]]))),
+                            "rotations must be unit"),
+        "NaN rotation": (dict(rotations=rot(np.vstack([q[:2], [[np.nan, 0, 0, 1]]]))),
+                         "rotations .* NaN"),
+        "negative density": (dict(densities=mi.Float([0.5, -1e-3, 1.0])), "densities must be >= 0"),
+        "Inf density": (dict(densities=mi.Float([0.5, np.inf, 1.0])), "densities .* Inf"),
+        "zero scale": (dict(scales=mi.Vector3f(mi.Float([0.1, 0.1, 0.1]), mi.Float([0.1, 0.0, 0.1]),
+                                               mi.Float([0.1, 0.1, 0.1]))), "scales must be > 0"),
+    }
+    for name, (change, msg) in cases.items():
+        bad_g = g.replace(**change)
+        with pytest.raises(VoxelizerError, match=msg):
+            voxelize(bad_g, geo)
+        with pytest.raises(VoxelizerError, match=msg):   # the training entry point too
+            voxelize_dr(bad_g, geo, block=((0, 0, 0), (4, 4, 4)))
+        with pytest.raises(ProjectorError, match=msg):   # one check for both
+            project(bad_g, geo)
+    # the first failing check is reported (positions before densities)
+    both = g.replace(positions=mi.Point3f(*[mi.Float(bad[:, k]) for k in range(3)]),
+                     densities=mi.Float([0.5, -1.0, 1.0]))
+    with pytest.raises(VoxelizerError, match="positions"):
+        voxelize(both, geo)
+
+
+def test_rotations_are_normalised_internally(geo, rng):
+    """Quaternions within QUATERNION_TOL of unit length give the volume of their normalised
+    selves, and the rotation gradient has no radial component (tangent to the sphere)."""
+    from mi_grg.projector import QUATERNION_TOL
+    params = make_params(rng, 6, geo, smin=0.12, smax=0.3)
+    unit = voxelize(to_gaussians(params), geo)
+    stretch = 1 + 0.8 * QUATERNION_TOL * np.array([1, -1, 1, -1, 1, -1.0])[:, None]
+    off = dict(params, q=params["q"] * stretch)
+    np.testing.assert_allclose(voxelize(to_gaussians(off), geo), unit, rtol=0,
+                               atol=2e-6 * unit.max())
+    y = rng.normal(size=geo.nVoxel)
+    gq = _ad_grads(off, geo, y)["q"]
+    radial = np.sum(gq * off["q"], 1) / np.linalg.norm(off["q"], axis=1)
+    assert np.linalg.norm(gq) > 0
+    assert np.abs(radial).max() <= 1e-5 * np.abs(gq).max()
 
 
 # ---------------------------------------------------------------- derivatives
