@@ -30,7 +30,7 @@ SCENE_XML = "scene.xml"
 _SCENE_FIELDS = {
     "phantom": ("--phantom", '<string name="phantom"> of <medium type="ct_phantom">'),
     "seed": ("--seed", '<integer name="seed"> of <medium type="ct_phantom"> (random '
-                       'phantoms; it also seeds the noise)'),
+                       'phantoms) and <integer name="noise_seed"> of the ct_scanner'),
     "n": ("--n", 'nVoxel of <sensor type="ct_scanner">'),
     "det": ("--det", 'nDetector of <sensor type="ct_scanner">'),
     "mode": ("--mode", 'mode of <sensor type="ct_scanner">'),
@@ -55,8 +55,8 @@ def _refuse_scene_conflicts(args) -> None:
 def _check_simulable(scan, path) -> None:
     """simulate computes exact line integrals of an analytic phantom; refuse a scene that
     asks for anything else rather than leave part of it silently unused."""
-    from .scene import _tag_of
-    unused = [f"<{_tag_of(o['type'], 'object')} type=\"{o['type']}\">"
+    from .scene import tag_of
+    unused = [f"<{tag_of(o['type'], 'object')} type=\"{o['type']}\">"
               for o in ([scan.integrator] if scan.integrator else []) + list(scan.other)]
     if unused:
         raise SystemExit(
@@ -93,15 +93,11 @@ def _default_scan(args):
         "model": "poisson+gaussian",
         "I0": DEFAULT_I0 if args.I0 is None else float(args.I0),
         "electronic_std": (DEFAULT_ELECTRONIC_STD if args.electronic_std is None
-                           else float(args.electronic_std))}
+                           else float(args.electronic_std)),
+        "seed": int(seed), "clip_negative": True}
     obj = {"type": "ct_phantom", "phantom": phantom}
     if phantom != "shepp":          # ct_phantom refuses a seed for the fixed Shepp-Logan head
         obj["seed"] = int(seed)
-    elif seed != 0:
-        # The scene format has no noise seed of its own; shepp's noise seed stays 0 there.
-        print(f"note: {SCENE_XML} cannot state --seed {seed} for phantom 'shepp' (ct_phantom "
-              "takes no seed for it); `simulate --scene` of it draws the noise with seed 0",
-              file=sys.stderr)
     return Scan(geometry=geometry, test_angles=test_angles, noise=noise, object=obj), seed
 
 
@@ -123,11 +119,11 @@ def cmd_simulate(args) -> int:
     else:
         scan, seed = _default_scan(args)
     xml = scan_to_xml(scan)        # before simulating: a scan that cannot be written fails early
-    noise = (NoiseModel(I0=scan.noise["I0"], electronic_std=scan.noise["electronic_std"])
-             if scan.noise else None)
+    noise = (NoiseModel(I0=scan.noise["I0"], electronic_std=scan.noise["electronic_std"],
+                        clip_negative=scan.noise["clip_negative"]) if scan.noise else None)
     t0 = time.perf_counter()
     case = simulate_case(scan.object["phantom"], scan.geometry, scan.test_angles, noise,
-                         seed=seed)
+                         seed=seed, noise_seed=scan.noise["seed"] if scan.noise else None)
     case.info["scene"] = scan.info()          # echoed into metrics.json by reconstruct
     case.info["scene_xml"] = SCENE_XML
     out = save_case(case, args.out, exr=args.exr)

@@ -60,6 +60,9 @@ class TrainConfig:
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05
     tv_block: int = 32             # edge of the randomly placed TV block, voxels
+    tv_extent: float = 3.0         # Gaussian support in std devs inside the TV block; 0:
+                                   # ``extent``. 3 is the 3-sigma cut of 3DGS-style
+                                   # rasterisers; it needs (3/4.5)^3 = 0.3x the voxel pairs
     # --- Adam learning rates (decay exponentially to lr_final_ratio of these)
     lr_position: float = 2e-4
     lr_density: float = 1e-2

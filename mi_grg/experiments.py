@@ -5,7 +5,8 @@ resumable, parallel runner.
                            [--methods a,b] [--cases x,y] [--dry-run]
     mi-grg report --out results/cpu [--report docs/results.md]
 
-NAME is one of ``EXPERIMENTS`` or "all":
+NAME is one of ``EXPERIMENTS`` or "all" (the experiments the suite's ``experiments`` block
+lists, or every one when it lists none):
     table1      every method x every case (3-D PSNR / SSIM, time)
     table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + graph field / Laplacian, gr
     table3      sweeps of k (kNN graph) and sigma_d (De-Init filter)
@@ -548,7 +549,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
     """Plan and run experiment ``name`` (or "all") of the suite into ``out_dir``.
 
     Args:
-        name: one of ``EXPERIMENTS`` or "all".
+        name: one of ``EXPERIMENTS`` or "all" (those the suite lists; all if none).
         suite_path: suite JSON file.
         out_dir: results root (layout in the module docstring).
         jobs: parallel worker processes (None: ``default_jobs``).
@@ -562,7 +563,10 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         methods = [m for m in methods.split(",") if m]
     if isinstance(cases, str):
         cases = [c for c in cases.split(",") if c]
-    names = list(EXPERIMENTS) if name == "all" else [name]
+    if name == "all":   # the experiments the suite lists (every one if it lists none)
+        names = [n for n in EXPERIMENTS if n in suite.experiments] or list(EXPERIMENTS)
+    else:
+        names = [name]
     specs = [s for n in names for s in plan_experiment(n, suite, methods, cases)]
     out = Path(out_dir)
     index = _index_done(out) if out.exists() else {}

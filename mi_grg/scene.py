@@ -58,7 +58,11 @@ SCANNER_FIELDS = {
                     "(poisson+gaussian only)"),
     "electronic_std": ("float", "std of the Gaussian electronic noise in photon counts, "
                                 "default 10 (poisson+gaussian only)"),
+    "noise_seed": ("integer", "seed of the noise draws, default 0 (poisson+gaussian only)"),
+    "clip_negative": ("boolean", "set negative noisy line integrals to 0, as R2-Gaussian "
+                                 "does; default true (poisson+gaussian only)"),
 }
+NOISE_FIELDS = ("I0", "electronic_std", "noise_seed", "clip_negative")
 REQUIRED = ("mode", "DSD", "DSO", "nDetector", "sDetector", "nVoxel", "sVoxel")
 NOISE_MODELS = ("none", "poisson+gaussian")
 DEFAULT_I0 = 1e4
@@ -139,7 +143,8 @@ def parse_scanner_fields(fields: dict):
 
     Values may be XML-typed Python values (str, int, float) or sequences. Returns the
     ``Geometry`` with the training angles (radians), the test angles [view] (radians, maybe
-    empty) and the noise model (``None`` or ``{"model", "I0", "electronic_std"}``).
+    empty) and the noise model (``None`` or ``{"model", "I0", "electronic_std", "seed",
+    "clip_negative"}``).
     Raises ``ScanError``/``GeometryError`` naming the offending field.
     """
     check_field_names(fields)
@@ -191,7 +196,7 @@ def _parse_noise(fields):
         raise ScanError(f"noise must be one of {NOISE_MODELS}, got {model!r}"
                         f"{suggest(str(model), NOISE_MODELS)}")
     if model == "none":
-        extra = [k for k in ("I0", "electronic_std") if k in fields]
+        extra = [k for k in NOISE_FIELDS if k in fields]
         if extra:
             verb = "apply" if len(extra) > 1 else "applies"
             raise ScanError(f"{' and '.join(extra)} only {verb} with noise='poisson+gaussian' "
@@ -203,7 +208,14 @@ def _parse_noise(fields):
     std = _number("electronic_std", fields.get("electronic_std", DEFAULT_ELECTRONIC_STD))
     if not (math.isfinite(std) and std >= 0):
         raise ScanError(f"electronic_std (photon counts) must be finite and >= 0, got {std!r}")
-    return {"model": model, "I0": i0, "electronic_std": std}
+    seed = _count("noise_seed", fields.get("noise_seed", 0), 0)
+    clip = fields.get("clip_negative", True)
+    if isinstance(clip, str) and clip.lower() in ("true", "false"):
+        clip = clip.lower() == "true"
+    if not isinstance(clip, (bool, np.bool_)):
+        raise ScanError(f"clip_negative must be a boolean (true | false), got {clip!r}")
+    return {"model": model, "I0": i0, "electronic_std": std, "seed": seed,
+            "clip_negative": bool(clip)}
 
 
 # ---------------------------------------------------------------- the scan
@@ -215,7 +227,8 @@ class Scan:
         geometry:    scan geometry with the training angles (radians).
         test_angles: held-out test angles [view] (radians), maybe empty.
         noise:       ``None`` or ``{"model": "poisson+gaussian", "I0": photons per pixel,
-                     "electronic_std": counts}`` (training views only).
+                     "electronic_std": counts, "seed": noise seed, "clip_negative": bool}``
+                     (training views only).
         object:      what is scanned, the ``<medium>`` of the ct_scanner sensor, as
                      ``{"type": plugin, **properties}`` (e.g. ``{"type": "ct_phantom",
                      "phantom": "shepp"}``; nested objects as nested dicts); ``{}`` if none.
@@ -232,6 +245,10 @@ class Scan:
     integrator: dict = field(default_factory=dict)
     path: str | None = None
     other: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.noise:   # the scene file's defaults, so that equal scans compare equal
+            self.noise = {"seed": 0, "clip_negative": True, **self.noise}
 
     def info(self) -> dict:
         """JSON-ready dict of everything the scene asks for (echoed into metrics.json)."""
@@ -321,8 +338,8 @@ def apply_overrides(fields: dict, overrides: dict | None) -> dict:
         for other in OVERRIDE_GROUPS.get(key, ()):
             fields.pop(other, None)
         if key == "noise" and value == "none":
-            fields.pop("I0", None)
-            fields.pop("electronic_std", None)
+            for k in NOISE_FIELDS:
+                fields.pop(k, None)
         if value is None:
             fields.pop(key, None)
         else:
@@ -353,7 +370,7 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     ``overrides`` maps scanner field names (see ``SCANNER_FIELDS``) to values, e.g.
     ``{"views": 10}`` from a CLI flag. An override replaces the field and the fields that
     would contradict it (``views`` replaces ``angles``, ``test_views`` replaces
-    ``test_angles``, ``noise="none"`` drops ``I0``/``electronic_std``). A value of ``None``
+    ``test_angles``, ``noise="none"`` drops ``NOISE_FIELDS``). A value of ``None``
     removes the field (its default applies). Unknown names raise ``ScanError``.
 
     The file is read with Mitsuba's parser and then instantiated, so every plugin checks
@@ -452,7 +469,7 @@ def _prop(name, value, indent) -> str:
     return f"{' ' * indent}<{tag} name={quoteattr(name)} value={quoteattr(text)}/>\n"
 
 
-def _tag_of(plugin: str, default=None) -> str:
+def tag_of(plugin: str, default=None) -> str:
     """The XML tag of a plugin type (medium, shape, ...)."""
     import mitsuba as mi
     tag = _tag_name(mi.PluginManager.instance().plugin_type(plugin)) or _TAGS.get(plugin)
@@ -465,7 +482,7 @@ def _tag_of(plugin: str, default=None) -> str:
 def _element(d, indent, name=None, tag=None) -> str:
     d = dict(d)
     plugin = d.pop("type")
-    tag = _tag_of(plugin, tag)
+    tag = tag_of(plugin, tag)
     pad = " " * indent
     attrs = f" type={quoteattr(plugin)}"
     if name is not None and not name.startswith("_arg_"):
@@ -504,6 +521,9 @@ def scanner_fields(scan: Scan) -> dict:
         f["noise"] = scan.noise["model"]
         f["I0"] = float(scan.noise["I0"])
         f["electronic_std"] = float(scan.noise["electronic_std"])
+        # written always: a data set's scene.xml states every effect that ran
+        f["noise_seed"] = int(scan.noise.get("seed", 0))
+        f["clip_negative"] = bool(scan.noise.get("clip_negative", True))
     return f
 
 

@@ -40,7 +40,7 @@ def default_test_angles(n: int) -> np.ndarray:
 
 
 def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseModel | None = None,
-                  seed: int = 0, supersample: int = 4) -> Case:
+                  seed: int = 0, supersample: int = 4, noise_seed: int | None = None) -> Case:
     """A simulated case in file units (``scene_scale = 1``).
 
     Args:
@@ -50,9 +50,11 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
         test_angles: test angles (radians); None -> ``default_test_angles(n_train_views)``;
                      an empty array gives no test views (``test`` of shape [0, v, u]).
         noise:       ``NoiseModel`` applied to the training views only (None: exact).
-        seed:        phantom seed (random families) and noise seed; the noise draws from
-                     ``np.random.default_rng([seed, 1])``, a stream apart from the phantom's.
+        seed:        phantom seed (random families), and the noise seed unless
+                     ``noise_seed`` is given.
         supersample: sub-voxel points per axis for the ground-truth volume.
+        noise_seed:  the noise draws from ``np.random.default_rng([noise_seed, 1])``, a
+                     stream apart from the phantom's (a scene file's ``noise_seed``).
     Returns:
         Case with float32 ``train`` [view, v, u] (exact line integrals, plus noise), ``test``
         [view, v, u] (exact, noise-free), ``vol_gt`` [x, y, z] and ``info``.
@@ -62,6 +64,9 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
     if noise is not None and not isinstance(noise, NoiseModel):
         raise TypeError(f"noise must be a NoiseModel or None, got {type(noise).__name__}")
     seed = int(seed)
+    noise_seed = seed if noise_seed is None else int(noise_seed)
+    if seed < 0 or noise_seed < 0:
+        raise ValueError(f"seed and noise_seed must be >= 0, got {seed}, {noise_seed}")
     if isinstance(phantom, str):
         phantom = make_phantom(phantom, seed=seed)
     elif not isinstance(phantom, EllipsoidPhantom):
@@ -75,7 +80,7 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
 
     train = phantom.line_integrals(geometry)
     if noise is not None:
-        train = noise.apply(train, np.random.default_rng([seed, 1]))
+        train = noise.apply(train, np.random.default_rng([noise_seed, 1]))
     if test_angles.size:
         test = phantom.line_integrals(geometry, test_angles).astype(np.float32)
     else:
@@ -87,6 +92,7 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
         "n_ellipsoids": len(phantom),
         "noise": None if noise is None else noise.to_dict(),
         "seed": seed,
+        "noise_seed": noise_seed,
         "supersample": int(supersample),
         "mode": geometry.mode,
         "n_voxel": list(geometry.nVoxel),

@@ -63,6 +63,13 @@ class CTScanner(mi.Sensor):
        - |float|
        - Photons per pixel (default: 1e4) and electronic noise std in counts (default: 10);
          only with ``noise=poisson+gaussian``.
+     * - noise_seed
+       - |int|
+       - Seed of the noise draws (default: 0); only with ``noise=poisson+gaussian``.
+     * - clip_negative
+       - |bool|
+       - Set negative noisy line integrals to 0, as R2-Gaussian does (default: true);
+         only with ``noise=poisson+gaussian``.
 
     The plugin makes its own film (``hdrfilm``, luminance, box filter) of height
     ``views * nDetector[0]`` and width ``nDetector[1]``: view ``k`` fills rows

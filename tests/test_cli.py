@@ -40,7 +40,8 @@ def test_simulate_then_reconstruct_fdk(shepp_data, tmp_path):
     # what was simulated, as the scene states it
     scene = metrics["data"]["scene"]
     assert scene["object"] == {"type": "ct_phantom", "phantom": "shepp"}
-    assert scene["noise"] == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0}
+    assert scene["noise"] == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0,
+                           "seed": 0, "clip_negative": True}
     assert scene["integrator"] == {} and scene["other"] == []
     assert metrics["data"]["scene_xml"] == SCENE_XML
 
@@ -52,7 +53,8 @@ def test_default_simulate_writes_its_scene_xml(shepp_data):
     meta = json.loads((shepp_data / "meta_data.json").read_text())
     np.testing.assert_array_equal(g.angles, [e["angle"] for e in meta["proj_train"]])
     np.testing.assert_array_equal(scan.test_angles, [e["angle"] for e in meta["proj_test"]])
-    assert scan.noise == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0}
+    assert scan.noise == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0,
+                           "seed": 0, "clip_negative": True}
     assert scan.object == {"type": "ct_phantom", "phantom": "shepp"}
     assert scan.integrator == {} and scan.other == []
 
@@ -64,7 +66,8 @@ def test_scene_xml_of_a_data_set_reproduces_it(tmp_path):
           "--I0", "3000", "--electronic-std", "4", *TINY, "--out", str(first)])
     scan = load_scan(first / SCENE_XML)
     assert scan.geometry.mode == "parallel"
-    assert scan.noise == {"model": "poisson+gaussian", "I0": 3000.0, "electronic_std": 4.0}
+    assert scan.noise == {"model": "poisson+gaussian", "I0": 3000.0, "electronic_std": 4.0,
+                          "seed": 5, "clip_negative": True}
     assert scan.object == {"type": "ct_phantom", "phantom": "needles", "seed": 5}
     main(["simulate", "--scene", str(first / SCENE_XML), "--out", str(again)])
     for rel in ("vol_gt.npy", "proj_train/proj_train_0003.npy", "proj_test/proj_test_0001.npy"):
@@ -142,10 +145,54 @@ def test_no_noise_contradicts_noise_flags(tmp_path):
               "--out", str(tmp_path / "data")])
 
 
-def test_shepp_seed_that_the_scene_cannot_state_is_reported(tmp_path, capsys):
-    main(["simulate", "--seed", "2", "--no-noise", "--n", "8", "--det", "12", "--views", "2",
-          "--test-views", "0", "--out", str(tmp_path / "data")])
-    assert "cannot state --seed 2 for phantom 'shepp'" in capsys.readouterr().err
+def test_shepp_noise_seed_is_stated_and_reproduced(tmp_path):
+    """Shepp-Logan takes no phantom seed, but --seed still seeds the noise: scene.xml says
+    so (noise_seed), and --scene of it reproduces the noisy views; another seed differs."""
+    small = ["--n", "8", "--det", "12", "--views", "3", "--test-views", "0"]
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    main(["simulate", "--seed", "2", *small, "--out", str(a)])
+    main(["simulate", "--scene", str(a / SCENE_XML), "--out", str(b)])
+    main(["simulate", "--seed", "3", *small, "--out", str(c)])
+    scan = load_scan(a / SCENE_XML)
+    assert scan.noise["seed"] == 2 and "seed" not in scan.object
+    rel = "proj_train/proj_train_0001.npy"
+    np.testing.assert_array_equal(np.load(b / rel), np.load(a / rel))
+    assert not np.array_equal(np.load(c / rel), np.load(a / rel))
+
+
+def _scene_with(tmp_path, extra: str):
+    text = (SCENES / "shepp_cone.xml").read_text()
+    anchor = text.index('<float   name="electronic_std"')
+    scene = tmp_path / "scene.xml"
+    scene.write_text(text[:anchor] + extra + "\n        " + text[anchor:])
+    return scene
+
+
+def test_clip_negative_false_keeps_negative_noisy_values(tmp_path):
+    """clip_negative in the scene is what runs: with false, noise on empty detector
+    pixels leaves negative line integrals; the default (true) clips them to 0."""
+    scene = _scene_with(tmp_path, '<boolean name="clip_negative" value="false"/>')
+    out, clipped = tmp_path / "raw", tmp_path / "clipped"
+    main(["simulate", "--scene", str(scene), "--views", "3", "--test-views", "0",
+          "--out", str(out)])
+    main(["simulate", "--scene", str(SCENES / "shepp_cone.xml"), "--views", "3",
+          "--test-views", "0", "--out", str(clipped)])
+    raw = np.load(out / "proj_train/proj_train_0000.npy")
+    assert raw.min() < 0
+    np.testing.assert_array_equal(np.maximum(raw, 0),
+                                  np.load(clipped / "proj_train/proj_train_0000.npy"))
+    assert load_scan(out / SCENE_XML).noise["clip_negative"] is False
+    meta = json.loads((out / "meta_data.json").read_text())
+    assert meta["mi_grg"]["noise"]["clip_negative"] is False
+
+
+@pytest.mark.parametrize("extra, match", [
+    ('<integer name="noise_seed" value="-1"/>', "noise_seed must be an integer >= 0"),
+    ('<string name="clip_negative" value="maybe"/>', "clip_negative must be a boolean"),
+])
+def test_bad_noise_fields_are_named(tmp_path, extra, match):
+    with pytest.raises(Exception, match=match):
+        load_scan(_scene_with(tmp_path, extra))
 
 
 def test_reconstruct_option_errors_are_one_line(shepp_data, tmp_path, capsys):

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.experiments import (SuiteError, load_suite, plan_experiment, run_experiment)
+from mi_grg.experiments import (EXPERIMENTS, SuiteError, load_suite, plan_experiment,
+                                run_experiment)
 from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, summary_lines,
                            write_report)
 
@@ -204,7 +205,7 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
 
 
 def test_repo_suites_are_valid():
-    for kind, n, det in (("cpu", 64, 96), ("gpu", 256, 512)):
+    for kind, n, det in (("cpu", 64, 96), ("cpu_full", 64, 96), ("gpu", 256, 512)):
         suite = load_suite(REPO / "experiments" / f"suite_{kind}.json")
         assert len(suite.cases) >= 8
         assert {c.category for c in suite.cases} == {"HO", "BS", "AO"}
@@ -219,6 +220,17 @@ def test_repo_suites_are_valid():
     assert len(t1) == 5 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
+
+
+def test_all_runs_the_experiments_the_suite_lists(tmp_path):
+    suite = _suite(tmp_path)                      # lists table1 only
+    res = run_experiment("all", suite, tmp_path / "out", dry_run=True)
+    assert {r["experiment"] for r in res["runs"]} == {"table1"}
+    raw = json.loads(suite.read_text())
+    del raw["experiments"]                        # lists none: every experiment
+    suite.write_text(json.dumps(raw))
+    res = run_experiment("all", suite, tmp_path / "out", dry_run=True)
+    assert {r["experiment"] for r in res["runs"]} == set(EXPERIMENTS)
 
 
 def test_suite_validation(tmp_path):

@@ -236,6 +236,8 @@ def test_misspelled_parameter(tmp_path):
     ('<float name="I0" value="1000"/>', ["I0"]),
     ('<string name="noise" value="none"/><float name="electronic_std" value="3"/>',
      ["electronic_std"]),
+    ('<integer name="noise_seed" value="4"/><boolean name="clip_negative" value="false"/>',
+     ["noise_seed", "clip_negative"]),
 ])
 def test_noise_parameters_without_noise(tmp_path, extra, names):
     for msg in _load_error(tmp_path, _scene(extra)):
@@ -244,11 +246,14 @@ def test_noise_parameters_without_noise(tmp_path, extra, names):
 
 def test_noise_model(tmp_path):
     scan = load_scan(_write(tmp_path, _scene('<string name="noise" value="poisson+gaussian"/>')))
-    assert scan.noise == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0}
+    assert scan.noise == {"model": "poisson+gaussian", "I0": 1e4, "electronic_std": 10.0,
+                          "seed": 0, "clip_negative": True}
     scan = load_scan(_write(tmp_path, _scene(
         '<string name="noise" value="poisson+gaussian"/><float name="I0" value="500"/>'
-        '<float name="electronic_std" value="0"/>')))
-    assert scan.noise == {"model": "poisson+gaussian", "I0": 500.0, "electronic_std": 0.0}
+        '<float name="electronic_std" value="0"/><integer name="noise_seed" value="7"/>'
+        '<boolean name="clip_negative" value="false"/>')))
+    assert scan.noise == {"model": "poisson+gaussian", "I0": 500.0, "electronic_std": 0.0,
+                          "seed": 7, "clip_negative": False}
     assert load_scan(_write(tmp_path, _scene())).noise is None
     for bad, name in [('<string name="noise" value="poisson"/>', "noise"),
                       ('<string name="noise" value="poisson+gaussian"/>'
@@ -437,7 +442,7 @@ def test_parse_scanner_fields_matches_the_xml_field_list():
     assert set(SCANNER_FIELDS) == {
         "mode", "DSD", "DSO", "nDetector", "sDetector", "nVoxel", "sVoxel", "offOrigin",
         "offDetector", "views", "total_angle", "start_angle", "angles", "test_views",
-        "test_angles", "noise", "I0", "electronic_std"}
+        "test_angles", "noise", "I0", "electronic_std", "noise_seed", "clip_negative"}
     docs = (Path(__file__).resolve().parents[1] / "docs" / "conventions.md").read_text()
     for name in SCANNER_FIELDS:
         assert f"`{name}`" in docs, f"docs/conventions.md does not describe {name}"

@@ -85,7 +85,7 @@ def test_noise_free_case_is_exact(mode):
     assert case.info == {"source": "mi_grg.simulate", "phantom": "shepp", "n_ellipsoids": 10,
                          "noise": None, "seed": 0, "supersample": 2, "mode": mode,
                          "n_voxel": [16, 16, 16], "n_detector": [24, 24], "n_train": 5,
-                         "n_test": 5}
+                         "n_test": 5, "noise_seed": 0}
 
 
 def test_noise_only_on_training_views_and_reproducible():

@@ -163,3 +163,19 @@ def test_config_edge_cases_are_errors(tiny_case):
     no_gt = dataclasses.replace(tiny_case, vol_gt=None)
     with pytest.raises(ValueError, match="monitor_3d.*ground truth"):
         Trainer(no_gt, make_config("gr", monitor_3d=True, **TINY), progress=False)
+
+
+@pytest.mark.parametrize("tv_extent, extent, want", [(3.0, 0.0, 3.0), (0.0, 4.0, 4.0)])
+def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent, extent, want):
+    """The TV blocks use ``tv_extent`` (0: ``extent``); the final volume uses ``extent``."""
+    import mi_grg.voxelizer as vox
+    seen, real = [], vox.voxelize_dr
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("extent"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(vox, "voxelize_dr", spy)
+    cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, **TINY)
+    Trainer(tiny_case, cfg, progress=False).run()
+    assert seen == [want] * 3 + [extent or None]
