@@ -559,6 +559,13 @@ def _setup_md(all_rows: dict) -> str:
     return "\n".join(lines)
 
 
+def _absent(name: str, out: Path) -> str:
+    """The line for an experiment with no runs in ``out``: how to add it."""
+    return (f"{DASH} (no {name} runs in `{out}`; add them with `mi-grg experiment {name} "
+            f"--suite SUITE --out {out}`, e.g. SUITE = experiments/suite_cpu_full.json, "
+            "then regenerate this report)")
+
+
 def write_report(out_dir, report_path="docs/results.md") -> Path:
     """Write the markdown report (and its PNGs under <report dir>/img/results/)."""
     out = Path(out_dir)
@@ -588,7 +595,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         h, b = per_case_rows(t1)
         md += ["Per case (PSNR / SSIM / time):", "", _md_table(h, b), ""]
     else:
-        md += [f"{DASH} (no table1 runs)", ""]
+        md += [_absent("table1", out), ""]
     md += ["**The paper's Table 1** (GR-Gaussian paper, 25 views, on its own data: X-3D at "
            "256^3 volumes / 512^2 projections, RD = real-world scans; NAF and SAX-NeRF are not "
            "implemented here). Transcribed for reference: NOT comparable case by case with "
@@ -600,7 +607,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         h, b = _runs_summary(t2, ["r2", "r2+deinit", "r2+pga", "r2+graph", "gr"])
         md += [_md_table(h, b), ""]
     else:
-        md += [f"{DASH} (no table2 runs)", ""]
+        md += [_absent("table2", out), ""]
     md += ["The paper's Table 2 (X-3D / real-world PSNR, SSIM; its own data, for reference):",
            "", _md_table(["paper", "X-3D PSNR", "X-3D SSIM", "RD PSNR", "RD SSIM"],
                          [[n, f"{a:.2f}", f"{b:.3f}", f"{c:.2f}", f"{d:.3f}"]
@@ -617,7 +624,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         if sds:
             md += [_md_table(*_sweep_table(t3, "sigma_d", sds)), ""]
     else:
-        md += [f"{DASH} (no table3 runs)", ""]
+        md += [_absent("table3", out), ""]
     md += ["The paper's Table 3 (X-3D rows, its own data and GPU):", "",
            _md_table(["paper"] + [f"k={k}" for k in range(4, 9)],
                      [[n] + [_paper_fmt(n, v) for v in vals]
@@ -641,7 +648,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
                 md.append("- " + ", ".join(f"{k}: {v}" for k, v in f.items() if v is not None))
             md.append("")
     else:
-        md += [f"{DASH} (no iterations runs)", ""]
+        md += [_absent("iterations", out), ""]
 
     sp = all_rows.get("speed")
     md += ["## Speed against error", ""]
@@ -656,7 +663,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
             md += [f"![speed {case}]({rel}/{png.name})", "",
                    "- " + ", ".join(f"{k}: {v}" for k, v in kinds.items()), ""]
     else:
-        md += [f"{DASH} (no speed runs)", ""]
+        md += [_absent("speed", out), ""]
 
     vw = all_rows.get("views")
     md += ["## Number of views", ""]
@@ -665,7 +672,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         md += ["Mean over the cases of the views experiment:", "", _md_table(h, b), "",
                f"![views]({rel}/{png.name})", ""]
     else:
-        md += [f"{DASH} (no views runs)", ""]
+        md += [_absent("views", out), ""]
 
     md += ["## Best and worst cases", ""]
     if t1:
