@@ -184,7 +184,17 @@ def test_summary_lines(tmp_path):
     assert "best 3-D PSNR on 1 of 2 cases" in lines[0] and "a +1.00 dB" in lines[0]
     assert "+0.25 dB on average" in lines[0]           # mean of +1.0 and -0.5
     assert "b (R2-Gaussian (r2) ahead by 0.50 dB)" in lines[1]
-    assert "gr / r2 = 1.50x" in lines[2]
+    assert "gr / r2 = 1.50x" in lines[2] and "complete" not in lines[2]
+    # a case without r2 / gr: times and the extra table are over the complete cases only
+    _fake_run(out, "table1", "c", "fdk", "AO", "fdk", psnr_3d=25.0, ssim_3d=0.5, seconds=9.0)
+    lines = summary_lines(out)
+    assert "over the 2 complete cases" in lines[2] and "gr / r2 = 1.50x" in lines[2]
+    assert "FDK 1.00 s" in lines[2], lines[2]          # case c (9 s) left out
+    md = write_report(out, tmp_path / "r.md").read_text()
+    assert "Only 2 of the 3 cases have a result from every method" in md
+    over = md[md.index("Only 2 of the 3"):]
+    row = _table_row(over, "Only 2 of the 3", "GR-Gaussian (gr)")
+    assert row[1:3] == ["31.75", "0.900"]              # mean of 31.0 and 32.5 over a, b
 
 
 def test_iteration_plot_and_replayed_stop(tmp_path):
