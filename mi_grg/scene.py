@@ -521,9 +521,9 @@ def scanner_fields(scan: Scan) -> dict:
         f["noise"] = scan.noise["model"]
         f["I0"] = float(scan.noise["I0"])
         f["electronic_std"] = float(scan.noise["electronic_std"])
-        # written always: a data set's scene.xml states every effect that ran
-        f["noise_seed"] = int(scan.noise.get("seed", 0))
-        f["clip_negative"] = bool(scan.noise.get("clip_negative", True))
+        # written always (Scan fills the defaults): scene.xml states every effect that ran
+        f["noise_seed"] = int(scan.noise["seed"])
+        f["clip_negative"] = bool(scan.noise["clip_negative"])
     return f
 
 

@@ -396,6 +396,15 @@ class _VoxelizeOp(dr.CustomOp):
         return "voxelize"
 
 
+def _plan_and_precision(g: Gaussians, geometry, start, size, extent, chunk_pairs):
+    """The pair plan and the six entries (a00, a01, a02, a11, a12, a22) of Sigma^-1, both
+    from the normalised rotations (as the projector: gradient tangent to the sphere)."""
+    q = unit_quaternions(g.rotations)
+    plan = _plan(g.positions, g.scales, q, geometry, start, size, extent, chunk_pairs)
+    A = inverse_covariance(g.scales, q)
+    return plan, [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
+
+
 # ---------------------------------------------------------------- public API
 def voxelize_dr(gaussians: Gaussians, geometry: Geometry, block=None, extent=None,
                 density_scale=None, chunk_pairs: int = DEFAULT_CHUNK_PAIRS):
@@ -432,10 +441,7 @@ def voxelize_dr(gaussians: Gaussians, geometry: Geometry, block=None, extent=Non
         return mi.TensorXf(dr.zeros(mi.Float, n_out), size)
     g = gaussians
     rho = g.densities if density_scale is None else g.densities * density_scale
-    q = unit_quaternions(g.rotations)   # as the projector: gradient tangent to the sphere
-    plan = _plan(g.positions, g.scales, q, geometry, start, size, extent, chunk_pairs)
-    A = inverse_covariance(g.scales, q)
-    a = [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
+    plan, a = _plan_and_precision(g, geometry, start, size, extent, chunk_pairs)
     p = mi.Point3f(g.positions)
     if dr.grad_enabled(p, a, rho):
         flat = dr.custom(_VoxelizeOp, p, a, rho, plan)
@@ -462,11 +468,7 @@ def pair_count(gaussians: Gaussians, geometry: Geometry, block=None, extent=None
     if len(g) == 0:
         return {"box_pairs": 0, "pairs": 0}
     with dr.suspend_grad():
-        q = unit_quaternions(g.rotations)
-        plan = _plan(g.positions, g.scales, q, geometry, start, size, extent,
-                     DEFAULT_CHUNK_PAIRS)
-        A = inverse_covariance(g.scales, q)
-        a = [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
+        plan, a = _plan_and_precision(g, geometry, start, size, extent, DEFAULT_CHUNK_PAIRS)
         pairs = sum(int(dr.sum(c["count"])[0]) for c in _chunks(plan, g.positions, a,
                                                                   g.densities))
     return {"box_pairs": plan.box_pairs, "pairs": int(pairs)}
