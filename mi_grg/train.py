@@ -45,7 +45,7 @@ def iteration_rule(geometry) -> int:
 
     1500 x sqrt(max(nVoxel) / 64), at least 500: 48^3 -> 1300, 64^3 -> 1500,
     128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU: a 64^3 Shepp-Logan case
-    then takes about 4 (r2) to 6 (gr) minutes, and the held-out PSNR is still rising
+    then takes about 5 (r2) to 7.5 (gr) minutes, and the held-out PSNR is still rising
     slowly there (the early stop rarely fires first; docs/benchmarks.md). Fewer is not a
     free speed-up: r2 with 1000 iterations at 64^3 scored 26.9 dB against 29.9 dB. The
     schedule (densification window, eval interval) scales with it (``_scaled``).
