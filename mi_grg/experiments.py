@@ -462,11 +462,13 @@ def _run_task(task: dict) -> dict:
                 "seconds": time.perf_counter() - t0}
 
 
-def _execute(func, tasks: list, jobs: int, desc: str, progress: bool) -> list:
+def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
+             on_result=None) -> list:
     """Run ``func(task)`` for every task in fresh spawned processes, ``jobs`` at a time.
 
     A worker that dies (segfault, OOM kill) breaks the pool; its unfinished tasks are then
-    retried one per pool, so a crashing run only fails itself."""
+    retried one per pool, so a crashing run only fails itself. ``on_result(i, result)`` is
+    called as each task finishes."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -480,6 +482,8 @@ def _execute(func, tasks: list, jobs: int, desc: str, progress: bool) -> list:
         nonlocal failed
         results[i] = res
         failed += res["status"] != "ok"
+        if on_result is not None:
+            on_result(i, res)
         bar.update(1)
         bar.set_postfix(failed=failed, refresh=False)
 
@@ -623,23 +627,39 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
     tasks = [{**base_task(min(n_jobs, len(runnable))), "run_dir": str(s.run_dir(out)),
               "data_dir": str(s.data_dir(out)), "method": s.method, "options": s.options}
              for s in runnable]
-    results = dict(zip((s.key() for s in runnable),
-                       _execute(_run_task, tasks, n_jobs, name, progress) if tasks else []))
+    row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
+
+    def finish(key, r):
+        s, row = row_of[key]
+        row.update({"status": "ran" if r["status"] == "ok" else "failed",
+                    **{k: v for k, v in r.items() if k != "status"}})
+        err = s.run_dir(out) / "error.txt"
+        if r["status"] != "ok" and not err.exists():   # the worker died before writing
+            err.write_text(str(r.get("error")) + "\n")
+
+    def write_index(final: bool) -> None:
+        # While runs go on, only finished rows are written: a killed runner leaves a
+        # runs.json of everything that completed (the report reads it as it is).
+        for n in names:
+            mine = [r for r in rows if r["experiment"] == n
+                    and (final or r["status"] in ("done before", "ran", "failed"))]
+            if mine or final:
+                _write_runs_json(out / n, n, suite, mine,
+                                 experiment_command(n, suite.path, out, methods, cases), n_jobs)
+
+    def on_result(i, r):
+        finish(runnable[i].key(), r)
+        write_index(final=False)
+
+    if tasks:
+        _execute(_run_task, tasks, n_jobs, name, progress, on_result=on_result)
     for s in todo:
         if s.case.data_dir_name in sim_failed:
-            results[s.key()] = {"status": "failed", "error": "simulation of data "
-                                f"{s.case.data_dir_name} failed (see data/*.error.txt)"}
-            (s.run_dir(out) / "error.txt").write_text(results[s.key()]["error"] + "\n")
+            msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
+            (s.run_dir(out) / "error.txt").write_text(msg + "\n")
+            finish(s.key(), {"status": "failed", "error": msg})
     for s, row in zip(specs, rows):
-        key = s.key()
-        if row["status"] == "todo":
-            r = results[key]
-            row.update({"status": "ran" if r["status"] == "ok" else "failed",
-                        **{k: v for k, v in r.items() if k != "status"}})
-            err = s.run_dir(out) / "error.txt"
-            if r["status"] != "ok" and not err.exists():   # the worker died before writing
-                err.write_text(str(r.get("error")) + "\n")
-        elif row["status"] in ("linked", "duplicate"):
+        if row["status"] in ("linked", "duplicate"):
             target = Path(row["target"])
             if _is_done(target):
                 _link(s.run_dir(out), target)
@@ -647,9 +667,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
             else:
                 row["status"] = "failed"
                 row["error"] = f"identical run {target} failed"
-    for n in names:
-        _write_runs_json(out / n, n, suite, [r for r in rows if r["experiment"] == n],
-                         experiment_command(n, suite.path, out, methods, cases), n_jobs)
+    write_index(final=True)
     summary.update({k: sum(r["status"] == k for r in rows)
                     for k in ("done before", "linked", "ran", "failed")})
     return summary

@@ -121,6 +121,34 @@ def test_parallel_matches_serial_and_isolates_failure(serial, parallel):
     assert status[("blob", "flaky")] == "failed" and status[("shepp", "flaky")] == "ran"
 
 
+def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
+    """runs.json is written as runs finish: a runner killed after the first run has
+    recorded it (and nothing it did not finish)."""
+    import drjit as dr
+    import mi_grg.experiments as ex
+    suite = _suite(tmp_path)
+
+    def first_then_killed(func, tasks, jobs, desc, progress, on_result=None):
+        threads = dr.thread_count()
+        try:
+            if on_result is None:              # simulating the data: all of it
+                return [func(t) for t in tasks]
+            on_result(0, func(tasks[0]))       # the first run, in this process
+        finally:
+            dr.set_thread_count(threads)
+        raise KeyboardInterrupt                # then the runner is killed
+
+    monkeypatch.setattr(ex, "_execute", first_then_killed)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment("table1", suite, out, jobs=1, progress=False)
+    runs = json.loads((out / "table1" / "runs.json").read_text())["runs"]
+    assert len(runs) == 1 and runs[0]["status"] == "ran"
+    assert (Path(runs[0]["dir"]) / "metrics.json").is_file()
+    assert runs[0]["psnr_3d"] == pytest.approx(
+        _metrics(out, runs[0]["case"], runs[0]["run"])["psnr_3d"])
+
+
 def _table_row(md: str, section: str, name: str) -> list:
     part = md.split(section, 1)[1]
     for line in part.splitlines():
