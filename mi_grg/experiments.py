@@ -17,9 +17,11 @@ lists, or every one when it lists none):
 Layout: ``OUT/data/<case>/`` (simulated once, R2-Gaussian layout, reused),
 ``OUT/<experiment>/<case>/<run>/`` (the reconstruction contract's files plus run_spec.json,
 log.txt, and error.txt on failure), ``OUT/<experiment>/runs.json`` (status of every run),
-``OUT/suite.json`` (the suite last run). A run whose metrics.json exists is not rerun; a
-run identical to one done elsewhere in OUT (same data, method and options) becomes a
-relative symlink to it instead of running again.
+``OUT/suite.json`` (the suite last run). A run whose metrics.json exists is not rerun,
+unless it is an r2/gr run whose recorded training config differs from what this code
+resolves its options to (a default changed since: ``stale_options``); a run identical to
+one done elsewhere in OUT (same data, method and options) becomes a relative symlink to it
+instead of running again. ``OUT/<experiment>/runs.json`` is rewritten as runs finish.
 
 Runs execute in spawned worker processes (Dr.Jit is not fork-safe), one fresh process per
 run, ``jobs`` at a time, each with ``cores // jobs`` Dr.Jit threads. A failing run writes
@@ -513,8 +515,29 @@ def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
     return results
 
 
+def stale_options(run_dir: Path) -> list:
+    """Training options of a finished r2/gr run whose values differ from what this code
+    resolves the run's options to (a default changed since it ran); [] if none differ or
+    the run is not a training run. Such a run is not reused: it is run again."""
+    try:
+        m = json.loads((Path(run_dir) / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return []
+    from .config import PRESETS, TrainConfig, make_config
+    used = (m.get("method_info") or {}).get("config")
+    if m.get("method") not in PRESETS or not isinstance(used, dict):
+        return []
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    opts = {k: v for k, v in (m.get("options") or {}).items() if k in names}
+    try:
+        now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
+    except Exception:  # noqa: BLE001 (an option this code no longer accepts)
+        return ["config"]
+    return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
+
+
 def _is_done(run_dir: Path) -> bool:
-    return (run_dir / "metrics.json").is_file()
+    return (run_dir / "metrics.json").is_file() and not stale_options(run_dir)
 
 
 def _index_done(out: Path) -> dict:
@@ -580,6 +603,8 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         row = {"experiment": s.experiment, "case": s.case.name, "run": s.run,
                "category": s.case.category, "label": s.label, "views": s.case.views,
                "method": s.method, "options": s.options, "dir": str(d)}
+        if (d / "metrics.json").is_file() and not _is_done(d):
+            row["stale"] = stale_options(d)   # defaults changed since it ran: run again
         if _is_done(d):
             row["status"] = "done before"
         elif key in index:
@@ -620,6 +645,10 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         sim_failed = {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
     for s in todo:   # write specs first: a run in progress is recognisable on disk
         d = s.run_dir(out)
+        if d.is_symlink():            # linked to a run that is stale now: run it here
+            d.unlink()
+        for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
+            (d / old).unlink(missing_ok=True)
         d.mkdir(parents=True, exist_ok=True)
         (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
                                                     indent=2, default=str))
@@ -730,6 +759,8 @@ def cmd_experiment(args) -> int:
     if args.dry_run:
         for r in res["runs"]:
             extra = f" -> {r['target']}" if "target" in r else ""
+            if r.get("stale"):
+                extra += f" (ran with other defaults: {', '.join(r['stale'])})"
             print(f"{r['status']:12s} {r['experiment']}/{r['case']}/{r['run']}  "
                   f"[{r['method']} {json.dumps(r['options'])}]{extra}")
         print(f"{res['planned']} runs: {res.get('todo', 0)} to run, "

@@ -10,7 +10,7 @@ import pytest
 
 import mi_grg
 from mi_grg.experiments import (EXPERIMENTS, SuiteError, load_suite, plan_experiment,
-                                run_experiment)
+                                run_experiment, stale_options)
 from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, summary_lines,
                            write_report)
 
@@ -147,6 +147,30 @@ def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
     assert (Path(runs[0]["dir"]) / "metrics.json").is_file()
     assert runs[0]["psnr_3d"] == pytest.approx(
         _metrics(out, runs[0]["case"], runs[0]["run"])["psnr_3d"])
+
+
+def test_training_run_with_changed_defaults_is_run_again(tmp_path):
+    """A finished gr run whose recorded config differs from what the current defaults give
+    is not reused (dry run names the option), and is run again afresh."""
+    suite = _suite(tmp_path, methods=("gr",))
+    raw = json.loads(suite.read_text())
+    raw["cases"] = raw["cases"][:1]
+    raw["method_options"] = {"gr": {"iterations": 2, "n_points": 300, "holdout_every": 0}}
+    suite.write_text(json.dumps(raw))
+    out = tmp_path / "out"
+    assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 1
+    run_dir = out / "table1" / "shepp" / "gr"
+    assert stale_options(run_dir) == []
+    assert run_experiment("table1", suite, out, dry_run=True)["done before"] == 1
+    m = json.loads((run_dir / "metrics.json").read_text())
+    m["method_info"]["config"]["tv_every"] += 1       # as if run under another default
+    (run_dir / "metrics.json").write_text(json.dumps(m))
+    assert stale_options(run_dir) == ["tv_every"]
+    plan = run_experiment("table1", suite, out, dry_run=True)
+    assert plan["todo"] == 1 and plan["runs"][0]["stale"] == ["tv_every"]
+    res = run_experiment("table1", suite, out, jobs=1, progress=False)
+    assert res["ran"] == 1 and res["failed"] == 0
+    assert stale_options(run_dir) == []
 
 
 def _table_row(md: str, section: str, name: str) -> list:
