@@ -66,6 +66,9 @@ class TrainConfig:
     tv_extent: float = 3.0         # Gaussian support in std devs inside the TV block; 0:
                                    # ``extent``. 3 is the 3-sigma cut of 3DGS-style
                                    # rasterisers; it needs (3/4.5)^3 = 0.3x the voxel pairs
+    tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
+                                   # the same expected gradient (the block is random anyway)
+                                   # for half the TV cost (docs/benchmarks.md)
     # --- Adam learning rates (decay exponentially to lr_final_ratio of these)
     lr_position: float = 2e-4
     lr_density: float = 1e-2
@@ -98,7 +101,7 @@ class TrainConfig:
             raise ConfigError("lr_final_ratio must be in (0, 1]")
         if self.n_points < 1:
             raise ConfigError("n_points must be >= 1")
-        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval")
+        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval", "tv_every")
                 if getattr(self, n) < 1]
         if zero:
             raise ConfigError(f"must be >= 1 (iterations): {', '.join(zero)}")

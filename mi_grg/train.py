@@ -2,7 +2,8 @@
 
     FDK of the fitting views -> De-Init (or plain FDK init for R2) -> per iteration: one
     view's projection loss (L1 + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
-    block + lambda_lap graph Laplacian -> Adam -> PGA densification every 100 iterations
+    block (every ``tv_every``-th iteration, weighted ``tv_every`` x) + lambda_lap graph
+    Laplacian -> Adam -> PGA densification every 100 iterations
     (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
     early stop, keeping the best state.
 
@@ -44,10 +45,10 @@ def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
     1500 x sqrt(max(nVoxel) / 64), at least 500: 48^3 -> 1300, 64^3 -> 1500,
-    128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU: a 64^3 Shepp-Logan case
-    then takes about 5 (r2) to 7.5 (gr) minutes, and the held-out PSNR is still rising
-    slowly there (the early stop rarely fires first; docs/benchmarks.md). Fewer is not a
-    free speed-up: r2 with 1000 iterations at 64^3 scored 26.9 dB against 29.9 dB. The
+    128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU (2 threads): a 64^3 case
+    then takes 2.8-4.8 min (r2) and 3.7-5.7 min (gr) on three phantoms, and the 3-D PSNR
+    is still rising there (docs/benchmarks.md). Fewer is not a free speed-up: r2 with
+    1000 iterations at 64^3 scored 26.9 dB against 29.9 dB at 1500. The
     schedule (densification window, eval interval) scales with it (``_scaled``).
     """
     return max(500, int(round(1500 * math.sqrt(max(geometry.nVoxel) / 64))))
@@ -369,12 +370,12 @@ class Trainer:
             loss = l1(pred, target)
             if cfg.lambda_ssim > 0:
                 loss = loss + cfg.lambda_ssim * dssim(pred, target)
-            if cfg.lambda_tv > 0:
+            if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
                 start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
                 from .voxelizer import voxelize_dr
                 vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
                                   density_scale=ds)
-                loss = loss + cfg.lambda_tv * tv_3d(vol)
+                loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
             if cfg.lambda_lap > 0 and self.graph is not None:
                 lap = laplacian_loss(self.graph, g.densities, normalise=False)
                 loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap

@@ -176,6 +176,33 @@ def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent,
         return real(*args, **kwargs)
 
     monkeypatch.setattr(vox, "voxelize_dr", spy)
-    cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, **TINY)
+    cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, tv_every=1,
+                      **TINY)
     Trainer(tiny_case, cfg, progress=False).run()
     assert seen == [want] * 3 + [extent or None]
+
+
+def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):
+    """tv_every=2: the TV term enters on even iterations only, weighted 2 lambda_tv."""
+    import mitsuba as mi
+    import mi_grg.losses as losses
+    calls = []
+
+    def unit_tv(vol):          # a constant TV value: the loss difference is its weight
+        calls.append(vol.shape)
+        return mi.Float(1.0)
+
+    monkeypatch.setattr(losses, "tv_3d", unit_tv)
+
+    def logged_losses(**kw):
+        tr = Trainer(tiny_case, make_config("gr", iterations=4, **TINY, **kw), progress=False)
+        tr.run()
+        return [r["loss"] for r in tr.state.log]
+
+    with_tv = logged_losses(tv_every=2, lambda_tv=0.05)
+    assert len(calls) == 2                        # iterations 2 and 4
+    without = logged_losses(lambda_tv=0.0)
+    assert len(calls) == 2
+    # iteration 1 has no TV term; iteration 2 (same view, same state) has 2 x 0.05 x 1
+    assert with_tv[0] == pytest.approx(without[0], rel=1e-6)
+    assert with_tv[1] - without[1] == pytest.approx(2 * 0.05, rel=1e-4)
