@@ -46,7 +46,7 @@ def iteration_rule(geometry) -> int:
 
     1500 x sqrt(max(nVoxel) / 64), at least 500: 48^3 -> 1300, 64^3 -> 1500,
     128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU (2 threads): a 64^3 case
-    then takes 2.8-4.8 min (r2) and 3.7-5.7 min (gr) on three phantoms, and the 3-D PSNR
+    then takes 2.6-4.4 min (r2) and 3.1-5.5 min (gr) on three phantoms, and the 3-D PSNR
     is still rising there (docs/benchmarks.md). Fewer is not a free speed-up: r2 with
     1000 iterations at 64^3 scored 26.9 dB against 29.9 dB at 1500. The
     schedule (densification window, eval interval) scales with it (``_scaled``).
