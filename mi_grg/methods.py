@@ -58,12 +58,32 @@ def register_method(name: str, func) -> None:
     METHODS[name] = func
 
 
+def code_version() -> str:
+    """mi_grg's version and, when it runs from a git checkout, the commit ("0.1.0+g1a2b3c4",
+    "+dirty" with uncommitted changes to tracked files): which code produced a result."""
+    import subprocess
+    from . import __version__
+    here = Path(__file__).resolve().parent
+    try:
+        git = ["git", "-C", str(here)]
+        commit = subprocess.run(git + ["rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, timeout=10)
+        if commit.returncode != 0:
+            return __version__
+        dirty = subprocess.run(git + ["status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):   # no git, or a hung one
+        return __version__
+    tag = f"{__version__}+g{commit.stdout.strip()}"
+    return tag + ("+dirty" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+
+
 def machine_info() -> dict:
     import mitsuba as mi
     import drjit as dr
     return {"variant": mi.variant(), "mitsuba": mi.__version__, "drjit": dr.__version__,
             "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "mi_grg": code_version()}
 
 
 def geometry_info(case: Case) -> dict:

@@ -537,7 +537,7 @@ def _setup_md(all_rows: dict) -> str:
             seen.add(real)
             mc = m.get("machine", {})
             machines.add((mc.get("variant"), mc.get("cpu"), mc.get("cores"),
-                          mc.get("mitsuba"), mc.get("drjit")))
+                          mc.get("mitsuba"), mc.get("drjit"), mc.get("mi_grg")))
             d = m.get("data") or {}
             sizes.add((tuple(d.get("n_voxel") or m.get("nVoxel") or ()),
                        tuple(d.get("n_detector") or ()), d.get("mode"),
@@ -549,9 +549,9 @@ def _setup_md(all_rows: dict) -> str:
             if m.get("method") in ("sart", "asd-pocs", "sart-curve", "asd-pocs-curve"):
                 sart.add((m["method"], (m.get("options") or {}).get("n_iter", "default")))
     lines = ["Machine(s) and variant(s) the runs used (from metrics.json):", ""]
-    for v, cpu, cores, mi_v, dr_v in sorted(machines, key=str):
+    for v, cpu, cores, mi_v, dr_v, code in sorted(machines, key=str):
         lines.append(f"- variant `{v}`, CPU {cpu}, {cores} cores, Mitsuba {mi_v}, "
-                     f"Dr.Jit {dr_v}")
+                     f"Dr.Jit {dr_v}, mi_grg {code or 'not recorded'}")
     lines += ["", "Sizes (volume [x, y, z], detector [v, u], beam, training views):", ""]
     for nv, nd, mode, views in sorted(sizes, key=str):
         lines.append(f"- {'x'.join(map(str, nv))} volume, {'x'.join(map(str, nd))} detector, "

@@ -38,6 +38,9 @@ from .gaussians import Gaussians
 # we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
 REFERENCE_N = 50000
 
+#: Iterations averaged in the loss plot's smoothed curve.
+LOSS_PLOT_WINDOW = 25
+
 LOG_FIELDS = ("iteration", "seconds", "loss", "heldout_psnr", "psnr_3d", "n_gaussians")
 
 
@@ -176,7 +179,13 @@ def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
     plt = _agg()
     it = [r["iteration"] for r in log]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
-    ax[0].semilogy(it, [r["loss"] for r in log], lw=0.8)
+    loss = np.asarray([r["loss"] for r in log], np.float64)
+    ax[0].semilogy(it, loss, lw=0.5, color="0.75", label="per iteration")
+    w = min(LOSS_PLOT_WINDOW, len(loss))
+    if w > 1:   # the mean over a window: the TV term enters every tv_every-th iteration only
+        ax[0].semilogy(it[w - 1:], np.convolve(loss, np.ones(w) / w, mode="valid"), lw=1.0,
+                       color="tab:blue", label=f"mean of {w}")
+        ax[0].legend(loc="upper right", fontsize=8)
     ax[0].set_title("training loss")
     ev = [r for r in log if r.get("heldout_psnr") not in (None, "")]
     if ev:
@@ -191,7 +200,8 @@ def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
     if stop_iteration is not None:
         ax[1].axvline(stop_iteration, color="k", ls=":", label="best / stop")
     ax[1].set_title("PSNR (dB)")
-    ax[1].legend(loc="lower right", fontsize=8)
+    if ax[1].get_legend_handles_labels()[0]:
+        ax[1].legend(loc="lower right", fontsize=8)
     ax[2].plot(it, [r["n_gaussians"] for r in log], lw=0.8)
     ax[2].set_title("Gaussians")
     for a in ax:

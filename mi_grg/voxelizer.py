@@ -59,18 +59,6 @@ from .geometry import Geometry
 from .projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
 
 
-def _extent_for_mass(mass: float) -> float:
-    """k with P(chi^2_3 > k^2) = mass: the ellipsoid m <= k of a 3-D Gaussian leaves out
-    exactly ``mass`` of its integral (chi-square tail with 3 degrees of freedom)."""
-    def tail(k):
-        return math.erfc(k / math.sqrt(2)) + math.sqrt(2 / math.pi) * k * math.exp(-k * k / 2)
-    lo, hi = 0.0, 40.0
-    for _ in range(200):  # bisection; tail() is decreasing in k
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if tail(mid) > mass else (lo, mid)
-    return 0.5 * (lo + hi)
-
-
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
 #: holds <= 2^24 / 9 columns (two UInt32 temporaries each: ~15 MB).
 DEFAULT_CHUNK_PAIRS = 1 << 24

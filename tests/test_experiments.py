@@ -209,6 +209,8 @@ def test_report_numbers_come_from_metrics(parallel, tmp_path):
     assert re.search(r"!\[best \w+\]\(img/results/montage_best_\w+\.png\)", md)
     assert any((tmp_path / "docs" / "img" / "results").glob("montage_*.png"))
     assert f"mi-grg experiment table1 --suite {suite} --out {out}" in md
+    # which code produced the runs, as each metrics.json recorded it
+    assert f"mi_grg {_metrics(out, 'shepp', 'fdk')['machine']['mi_grg']}" in md
 
 
 def _fake_run(out: Path, exp: str, case: str, run: str, cat: str, method: str, **metrics):

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from mi_grg.case import Case
-from mi_grg.methods import get_method, reconstruct, register_method
+from mi_grg import __version__
+from mi_grg.methods import code_version, get_method, reconstruct, register_method
 
 
 def _case(small_cone_geometry, rng):
@@ -30,7 +31,34 @@ def test_outputs_follow_the_contract(tmp_path, small_cone_geometry, rng):
     assert saved["method"] == "gt-plus-noise" and saved["options"] == {"scale": 0.5}
     assert saved["data"] == {"phantom": "random"} and saved["seconds"] >= 0
     assert "variant" in saved["machine"]
+    assert saved["machine"]["mi_grg"] == code_version()
     assert (tmp_path / "slices.png").stat().st_size > 1000
+
+
+def test_code_version_names_the_commit():
+    """Which code produced a result: compared with git run directly on the package."""
+    import subprocess
+    from pathlib import Path
+    import mi_grg
+    pkg = Path(mi_grg.__file__).resolve().parent
+    head = subprocess.run(["git", "-C", str(pkg), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True)
+    if head.returncode != 0:
+        assert code_version() == __version__   # installed outside a checkout
+        return
+    dirty = subprocess.run(["git", "-C", str(pkg), "status", "--porcelain",
+                            "--untracked-files=no"], capture_output=True, text=True).stdout
+    want = f"{__version__}+g{head.stdout.strip()}" + ("+dirty" if dirty.strip() else "")
+    assert code_version() == want
+
+
+def test_code_version_without_git(monkeypatch):
+    import subprocess
+
+    def no_git(*args, **kwargs):
+        raise FileNotFoundError("git")
+    monkeypatch.setattr(subprocess, "run", no_git)
+    assert code_version() == __version__
 
 
 def test_wrong_shape_and_nan_are_caught(small_cone_geometry, rng):

@@ -206,3 +206,26 @@ def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):
     # iteration 1 has no TV term; iteration 2 (same view, same state) has 2 x 0.05 x 1
     assert with_tv[0] == pytest.approx(without[0], rel=1e-6)
     assert with_tv[1] - without[1] == pytest.approx(2 * 0.05, rel=1e-4)
+
+
+def test_loss_plot_smooths_the_alternating_tv_term(tmp_path, monkeypatch):
+    """With tv_every = 2 the loss alternates; the plot's smoothed curve is the running mean
+    (for 1, 3, 1, 3, ... it is 2 within one window's imbalance), and short logs still plot."""
+    import matplotlib.axes
+    from mi_grg.train import LOSS_PLOT_WINDOW, plot_log
+    curves = []
+    orig = matplotlib.axes.Axes.semilogy
+
+    def spy(self, x, y, *a, **k):
+        curves.append(np.asarray(y, np.float64))
+        return orig(self, x, y, *a, **k)
+    monkeypatch.setattr(matplotlib.axes.Axes, "semilogy", spy)
+    log = [{"iteration": i + 1, "loss": 1.0 + 2.0 * (i % 2), "n_gaussians": 10}
+           for i in range(200)]
+    plot_log(tmp_path / "a.png", log)
+    raw, smooth = curves
+    assert len(smooth) == len(raw) - LOSS_PLOT_WINDOW + 1
+    np.testing.assert_allclose(smooth, 2.0, atol=2.0 / LOSS_PLOT_WINDOW + 1e-12)
+    assert raw.max() - raw.min() == 2.0
+    plot_log(tmp_path / "b.png", log[:1])
+    assert len(curves) == 3 and (tmp_path / "b.png").stat().st_size > 1000

@@ -89,15 +89,8 @@ def geo():
 
 # ---------------------------------------------------------------- values
 def test_default_extent_is_shared_with_the_projector():
-    try:
-        from mi_grg.projector import DEFAULT_EXTENT as projector_extent
-    except ImportError:  # the voxelizer's own rule: 3-D mass beyond the ellipsoid 1e-4
-        from scipy.stats import chi2
-        projector_extent = np.sqrt(chi2.isf(1e-4, 3))
-    assert DEFAULT_EXTENT == pytest.approx(projector_extent, rel=1e-6)
-    from scipy.stats import chi2
-    assert voxelizer._extent_for_mass(1e-4) == pytest.approx(np.sqrt(chi2.isf(1e-4, 3)),
-                                                             rel=1e-9)
+    from mi_grg.projector import DEFAULT_EXTENT as projector_extent
+    assert DEFAULT_EXTENT == projector_extent
 
 
 def test_matches_brute_force(variant, geo, rng):
