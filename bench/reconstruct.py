@@ -8,6 +8,11 @@ the training runs take minutes; the seed is fixed).
 
     python bench/reconstruct.py                   # 64^3, phantoms shepp, needles, shells
     python bench/reconstruct.py --sizes 64 128    # also 128^3 (about an hour more)
+    python bench/reconstruct.py --sizes 128 --phantoms shepp --methods gr
+
+The cells measured replace the same (phantom, size, method) cells of an existing
+reconstruct.json, the others are kept (each row records its date and code version);
+``--fresh`` starts a new file.
 """
 from __future__ import annotations
 
@@ -38,7 +43,8 @@ def one(phantom: str, n: int, method: str) -> dict:
     out = {"phantom": phantom, "n": n, "method": method, "seconds": time.perf_counter() - t0,
            "psnr_3d": m["psnr_3d"], "ssim_3d": m["ssim_3d"],
            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
-           "variant": m["machine"]["variant"]}
+           "variant": m["machine"]["variant"], "code": m["machine"].get("mi_grg"),
+           "date": time.strftime("%Y-%m-%d")}
     info = m.get("method_info")
     if info:
         out.update({k: info[k] for k in ("iterations_run", "iterations_planned", "stopped_by",
@@ -52,11 +58,18 @@ def main() -> int:
     ap.add_argument("--phantoms", nargs="+", default=["shepp", "needles", "shells"])
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench"))
+    ap.add_argument("--fresh", action="store_true",
+                    help="drop the cells of an existing reconstruct.json instead of keeping them")
     ap.add_argument("--one", nargs=3, metavar=("PHANTOM", "N", "METHOD"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2])))
         return 0
+    out = Path(args.out)
+    key = lambda r: (r["phantom"], r["n"], r["method"])   # noqa: E731
+    old = []
+    if (out / "reconstruct.json").exists() and not args.fresh:
+        old = json.loads((out / "reconstruct.json").read_text())["rows"]
     rows = []
     for n in args.sizes:
         for ph in args.phantoms:
@@ -71,7 +84,12 @@ def main() -> int:
                 print(f"{ph:8s} {n:4d}^3 {method:9s} {row['seconds']:8.1f} s  "
                       f"PSNR {row['psnr_3d']:6.2f}  SSIM {row['ssim_3d']:.3f}  "
                       f"peak {row['peak_rss_gb']:.2f} GB", flush=True)
-    out = Path(args.out)
+    new = {key(r) for r in rows}
+    kept = [r for r in old if key(r) not in new]
+    if kept:
+        print(f"kept {len(kept)} cells of the earlier {out / 'reconstruct.json'}")
+    order = {m: i for i, m in enumerate(METHODS)}
+    rows = sorted(kept + rows, key=lambda r: (r["n"], r["phantom"], order.get(r["method"], 99)))
     out.mkdir(parents=True, exist_ok=True)
     machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()}
     (out / "reconstruct.json").write_text(json.dumps({"machine": machine, "rows": rows},
@@ -84,15 +102,18 @@ def to_markdown(rows: list, machine: dict) -> str:
     lines = ["# Reconstruction benchmark (`bench/reconstruct.py`)", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, variant "
              f"{rows[0]['variant'] if rows else '?'}. One run per cell (seed 0); 25 noisy "
-             "views; 3-D PSNR (dB) / SSIM against the ground truth.", "",
+             "views; 3-D PSNR (dB) / SSIM against the ground truth. Cells measured on "
+             "different days (date, code) are not side by side measurements.", "",
              "| phantom | size | method | PSNR | SSIM | time (s) | peak memory (GB) | "
-             "iterations | Gaussians |", "|---|---|---|---|---|---|---|---|---|"]
+             "iterations | Gaussians | date | code |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         its = (f"{r['iterations_run']}/{r['iterations_planned']}" if "iterations_run" in r
                else "")
         lines.append(f"| {r['phantom']} | {r['n']}^3 | {r['method']} | {r['psnr_3d']:.2f} | "
                      f"{r['ssim_3d']:.3f} | {r['seconds']:.1f} | {r['peak_rss_gb']:.2f} | "
-                     f"{its} | {r.get('n_gaussians', '')} |")
+                     f"{its} | {r.get('n_gaussians', '')} | {r.get('date') or '—'} | "
+                     f"{r.get('code') or '—'} |")
     # gr against the best classical method and against r2, per case (measured in this run)
     lines += ["", "| phantom | size | gr - best classical (dB) | gr - r2 (dB) |", "|---|---|---|---|"]
     cases = sorted({(r["phantom"], r["n"]) for r in rows})
