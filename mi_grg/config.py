@@ -79,6 +79,8 @@ class TrainConfig:
     holdout_every: int = 8         # hold out every n-th training view; 0: none
     eval_every: int = 500
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
+    stop_patience: int = 2         # ... below its best at this many evaluations in a row
+                                   # (1: the paper's rule; why 2: mi_grg.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no
@@ -101,10 +103,10 @@ class TrainConfig:
             raise ConfigError("lr_final_ratio must be in (0, 1]")
         if self.n_points < 1:
             raise ConfigError("n_points must be >= 1")
-        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval", "tv_every")
-                if getattr(self, n) < 1]
+        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval", "tv_every",
+                            "stop_patience") if getattr(self, n) < 1]
         if zero:
-            raise ConfigError(f"must be >= 1 (iterations): {', '.join(zero)}")
+            raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -3,6 +3,13 @@
 The paper evaluates PSNR every 500 iterations and stops "if the PSNR decreases by more than
 0.5 %". We compare with the BEST value so far (not only the previous one), so a slow slide
 of several small drops also stops the run, and the caller keeps the best state.
+
+``patience`` is the number of evaluations in a row that must lie below that margin
+(1 = the paper's rule as written). At our scaled schedules (12 evaluations in 1500
+iterations rather than 60 in 30k) the held-out PSNR still rises by about 0.3 dB per
+evaluation late in training and wobbles by +-0.15 dB (0.5 % of 26-30 dB) around that trend,
+so a single dip ended runs that recovered at the next evaluation (shepp 64^3, gr: stopped
+at 1250 of 1500 with 3-D PSNR 29.79 dB; run to the end: 30.57 dB). TrainConfig's default is 2.
 """
 from __future__ import annotations
 
@@ -12,22 +19,27 @@ from dataclasses import dataclass, field
 
 @dataclass
 class EarlyStopper:
-    """Stop when ``value < best * (1 - drop)``; ``drop`` is a fraction (0.005 = 0.5 %).
+    """Stop when ``value < best * (1 - drop)`` at ``patience`` evaluations in a row; ``drop``
+    is a fraction (0.005 = 0.5 %).
 
     ``update`` returns one of "improved", "continue" or "stop"; ``reason`` says why the run
     stopped ("held-out PSNR fell ..."), ``best`` / ``best_iteration`` where it peaked.
     """
 
     drop: float = 0.005
+    patience: int = 1
     label: str = "held-out PSNR"
     best: float = -math.inf
     best_iteration: int = -1
     history: list = field(default_factory=list)
     reason: str | None = None
+    below: int = 0                 # evaluations in a row below the margin so far
 
     def __post_init__(self):
         if not 0 <= self.drop < 1:
             raise ValueError(f"drop must be a fraction in [0, 1), got {self.drop}")
+        if int(self.patience) != self.patience or self.patience < 1:
+            raise ValueError(f"patience must be an integer >= 1, got {self.patience}")
 
     def update(self, iteration: int, value: float) -> str:
         if not math.isfinite(value):
@@ -37,20 +49,27 @@ class EarlyStopper:
         self.history.append((int(iteration), float(value)))
         if value > self.best:
             self.best, self.best_iteration = float(value), int(iteration)
+            self.below = 0
             return "improved"
         # PSNR can be negative in dB only for hopeless fits; use the magnitude for the margin.
-        if value < self.best - self.drop * abs(self.best):
-            self.reason = (f"{self.label} fell from {self.best:.3f} (iteration "
-                           f"{self.best_iteration}) to {value:.3f} at iteration {iteration}, "
-                           f"a drop of more than {100 * self.drop:g} %")
-            return "stop"
-        return "continue"
+        if value >= self.best - self.drop * abs(self.best):
+            self.below = 0
+            return "continue"
+        self.below += 1
+        if self.below < self.patience:
+            return "continue"
+        row = (f" ({self.patience} evaluations in a row)" if self.patience > 1 else "")
+        self.reason = (f"{self.label} fell from {self.best:.3f} (iteration "
+                       f"{self.best_iteration}) to {value:.3f} at iteration {iteration}, "
+                       f"a drop of more than {100 * self.drop:g} %{row}")
+        return "stop"
 
     def state(self) -> dict:
         return {"best": self.best, "best_iteration": self.best_iteration,
-                "history": list(self.history), "reason": self.reason}
+                "history": list(self.history), "reason": self.reason, "below": self.below}
 
     def load_state(self, state: dict) -> None:
         self.best, self.best_iteration = state["best"], state["best_iteration"]
         self.history = [tuple(x) for x in state["history"]]
         self.reason = state["reason"]
+        self.below = int(state.get("below", 0))   # checkpoints from before patience existed

@@ -274,14 +274,18 @@ def _col(rows, key):
     return out
 
 
-def replay_early_stop(iterations, heldout, drop=None):
-    """Iteration at which ``EarlyStopper(drop)`` would stop on the logged held-out PSNR
-    (None if it never would); ``drop`` defaults to TrainConfig's stop_drop."""
+def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0):
+    """(iteration at which ``EarlyStopper(drop, patience)`` would stop on the logged held-out
+    PSNR or None, the best iteration); ``drop`` and ``patience`` default to TrainConfig's
+    stop_drop and stop_patience. Like training, only evaluations at iterations >= ``start``
+    (the end of densification) are judged."""
     from .config import TrainConfig
     from .early_stop import EarlyStopper
-    st = EarlyStopper(drop=TrainConfig().stop_drop if drop is None else drop)
+    cfg = TrainConfig()
+    st = EarlyStopper(drop=cfg.stop_drop if drop is None else drop,
+                      patience=cfg.stop_patience if patience is None else patience)
     for it, v in zip(iterations, heldout):
-        if v is None:
+        if v is None or it < start:
             continue
         if st.update(int(it), v) == "stop":
             return int(it), st.best_iteration
@@ -318,7 +322,8 @@ def plot_iterations(rows, img_dir: Path) -> list:
                          label=f"3-D vs ground truth, {r['label']}")
             info = r["metrics"].get("method_info") or {}
             if r["run"].endswith("nostop"):
-                stop_it, best_it = replay_early_stop(it, ho)
+                start = (info.get("schedule") or {}).get("densify_stop", 0)
+                stop_it, best_it = replay_early_stop(it, ho, start=start)
                 if stop_it is not None:
                     ax.axvline(stop_it, color="k", ls=":", lw=1)
                     ax.annotate("early stop (replayed)", (stop_it, ax.get_ylim()[0]),
@@ -655,12 +660,15 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     it = all_rows.get("iterations")
     md += ["## Iteration analysis", ""]
     if it:
+        from .config import TrainConfig
+        tc = TrainConfig()
         md += ["Held-out-view PSNR (the early-stopping signal, no ground truth) and 3-D PSNR "
                "(when logged) against iteration. Solid: the run with early stopping disabled "
                "(stop_drop 0.99) over the full schedule, with the iteration where the default "
-               "rule (stop when held-out PSNR falls 0.5 % below its best) would have stopped "
-               "it (dotted, replayed from its log); dashed: the normal run, its actual stop "
-               "dash-dotted.", ""]
+               f"rule (stop when held-out PSNR is more than {100 * tc.stop_drop:g} % below "
+               f"its best at {tc.stop_patience} evaluation(s) in a row, judged once "
+               "densification has ended) would have stopped it (dotted, replayed from its "
+               "log); dashed: the normal run, its actual stop dash-dotted.", ""]
         for case, png, facts in plot_iterations(it, img_dir):
             md += [f"![iterations {case}]({rel}/{png.name})", ""]
             for f in facts:

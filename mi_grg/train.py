@@ -263,7 +263,7 @@ class Trainer:
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
-        self.stopper = EarlyStopper(drop=cfg.stop_drop)
+        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience)
         if self.state.stopper:
             self.stopper.load_state(self.state.stopper)
         self.graph = None
@@ -278,7 +278,9 @@ class Trainer:
         fit_geo = geo.with_angles(geo.angles[self.fit_idx])
         vol = fdk(self.case.train[self.fit_idx], fit_geo)
         info = {}
-        g = init_gaussians(np.clip(vol, 0, None), geo, n_points=cfg.n_points, tau=cfg.init_tau,
+        # The signed FDK is filtered: clipping first would lift the air's zero-mean noise to
+        # a positive mean, and after the filter every voxel of the cube would pass tau.
+        g = init_gaussians(vol, geo, n_points=cfg.n_points, tau=cfg.init_tau,
                            sigma_d=cfg.sigma_d or None, density_rescale=cfg.density_rescale,
                            seed=cfg.seed, info=info)
         if cfg.use_graph_field:

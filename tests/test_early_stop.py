@@ -16,6 +16,27 @@ def test_stops_on_drop_of_more_than_half_a_percent_from_the_best():
     assert "1000" in s.reason and "2500" in s.reason
 
 
+def test_patience_needs_drops_at_consecutive_evaluations():
+    s = EarlyStopper(drop=0.005, patience=2)
+    assert s.update(500, 30.0) == "improved"
+    assert s.update(625, 29.8) == "continue"           # -0.67 %, first below the margin
+    assert s.update(750, 29.9) == "continue"           # -0.33 %: the run of drops is broken
+    assert s.update(875, 29.8) == "continue"           # first again
+    assert s.update(1000, 29.7) == "stop"              # second in a row
+    assert s.best_iteration == 500 and "2 evaluations in a row" in s.reason
+    t = EarlyStopper(drop=0.005, patience=2)
+    for it, v in [(1, 30.0), (2, 29.0), (3, 30.5), (4, 29.0)]:   # an improvement resets it
+        assert t.update(it, v) != "stop"
+    u = EarlyStopper(drop=0.005, patience=2)            # the count survives a checkpoint
+    u.update(1, 30.0), u.update(2, 29.0)
+    v = EarlyStopper(drop=0.005, patience=2)
+    v.load_state(u.state())
+    assert v.update(3, 29.0) == "stop"
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="patience"):
+            EarlyStopper(patience=bad)
+
+
 def test_slow_slide_is_caught_although_each_step_is_small():
     s = EarlyStopper(drop=0.005)
     values = [40.0, 39.9, 39.8, 39.7]                  # each step -0.25 %

@@ -254,16 +254,23 @@ def test_summary_lines(tmp_path):
 def test_iteration_plot_and_replayed_stop(tmp_path):
     # the early-stop rule replayed on a log: stop at the first value 0.5 % below the best
     its, vals = [10, 20, 30, 40, 50], [10.0, 12.0, 13.0, 12.94, 12.9]
-    assert replay_early_stop(its, vals) == (50, 30)     # 12.94 > 13 * 0.995 = 12.935
+    assert replay_early_stop(its, vals, patience=1) == (50, 30)   # 12.94 > 12.935
+    # the default patience (2) needs two such values in a row; a dip that recovers is not one
+    its2, vals2 = [10, 20, 30, 40, 50, 60, 70], [10.0, 13.0, 12.9, 12.95, 12.9, 12.8, 12.7]
+    assert replay_early_stop(its2, vals2) == (60, 20)
+    assert replay_early_stop(its2, vals2, patience=1) == (30, 20)
+    # evaluations before ``start`` (densification) are not judged
+    assert replay_early_stop(its2, vals2, start=40) == (70, 40)
     out = tmp_path / "res"
     d = _fake_run(out, "iterations", "c1", "gr-nostop", "HO", "gr", psnr_3d=20.0,
                   method_info={"iterations_run": 50, "iterations_planned": 50,
                                "stopped_by": "iteration budget (50) reached"})
     (d / "train_log.csv").write_text(
         "iteration,seconds,loss,heldout_psnr,psnr_3d,n_gaussians\n" + "".join(
-            f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its, vals)))
+            f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its2, vals2)))
     md = write_report(out, tmp_path / "r.md").read_text()
-    assert "replayed_stop: 50" in md and "best_heldout_iteration: 30" in md
+    # the report replays the default rule (patience 2)
+    assert "replayed_stop: 60" in md and "best_heldout_iteration: 20" in md
     assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
     assert len(load_runs(out)["iterations"]) == 1
 

@@ -129,7 +129,8 @@ def test_early_stop_on_held_out_views_keeps_the_best_state(tiny_case, monkeypatc
     names the rule, and returns the state of the best evaluation."""
     # 600 iterations: evaluations every 125; states are judged only after densification
     # ends (300), so 375 is the first candidate and the drop at 500 stops the run.
-    t = Trainer(tiny_case, make_config("gr", iterations=600, **TINY), progress=False)
+    t = Trainer(tiny_case, make_config("gr", iterations=600, stop_patience=1, **TINY),
+                progress=False)
     scores = iter([20.0, 20.0, 20.0, 19.0, 18.0])
     monkeypatch.setattr(t, "_heldout_psnr", lambda raw: next(scores))
     kept = {}
@@ -145,6 +146,10 @@ def test_early_stop_on_held_out_views_keeps_the_best_state(tiny_case, monkeypatc
     assert info["iterations_run"] == 500 < info["iterations_planned"]
     assert "held-out" in info["stopped_by"] and info["best_iteration"] == 375
     np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), kept[375])
+    # the config's patience reaches the stopper (default 2: mi_grg.early_stop says why)
+    assert make_config("gr").stop_patience == 2
+    assert Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, **TINY),
+                   progress=False).stopper.patience == 3
 
 
 def test_3d_psnr_is_logged_at_evaluations_when_there_is_a_ground_truth(tiny_case, tmp_path):
