@@ -43,7 +43,12 @@ class TrainConfig:
     # --- De-Init (Sec. 3.3.1)
     n_points: int = 50000          # M, capped by the number of candidate voxels
     init_tau: float = 0.001        # threshold, fraction of the denoised volume's max
-    sigma_d: float = 3.0           # denoising filter std in voxels; 0: plain FDK init (R2)
+    sigma_d: float = 3.0           # denoising filter std in voxels of a sigma_d_grid grid;
+                                   # 0: plain FDK init (R2)
+    sigma_d_grid: int = 256        # sigma_d is a length: sigma_d / sigma_d_grid of the volume's
+                                   # longest edge (the paper's 3 voxels at 256^3), filtered
+                                   # as sigma_d x max(nVoxel) / sigma_d_grid voxels of the
+                                   # case (0.75 at 64^3); 0: sigma_d in the case's voxels
     density_rescale: float = 0.15  # init densities x this (kernel overlap; R2-Gaussian's)
     # --- graph (Sec. 3.2)
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field

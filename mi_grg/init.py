@@ -136,6 +136,24 @@ def denoise_volume(vol, sigma_d: float | None = 3.0, radius: int | None = None,
     return np.asarray(data, dtype=np.float32).reshape(shape)
 
 
+def sigma_d_voxels(sigma_d: float, n_voxel, grid: int = 256) -> float:
+    """The De-Init filter std in voxels of a grid ``n_voxel`` [x, y, z].
+
+    ``sigma_d`` is given in voxels of a grid ``grid`` voxels along its longest axis: the
+    paper tuned sigma_d = 3 on 256^3 volumes, where it blurs over 3/256 of the volume;
+    the same 3 voxels on a 64^3 grid blur over 4x that length (at 64^3, 22 noisy views,
+    the filtered FDK's correlation with the ground truth is 0.59-0.95 with 3 voxels and
+    0.84-0.98 with 0.75, on shepp, shell, shells and mni152). ``grid`` = 0 takes it in
+    the case's own voxels. Returns sigma_d x max(n_voxel) / grid (or sigma_d)."""
+    if not (math.isfinite(sigma_d) and sigma_d >= 0):
+        raise InitError(f"sigma_d must be >= 0 voxels, got {sigma_d}")
+    if int(grid) != grid or grid < 0:
+        raise InitError(f"sigma_d_grid must be an integer >= 0 (voxels), got {grid}")
+    if grid == 0:
+        return float(sigma_d)
+    return float(sigma_d) * max(int(n) for n in n_voxel) / int(grid)
+
+
 # ------------------------------------------------------------------ scales, rescale
 def knn_scales(positions: np.ndarray, volume_size: float, voxel_size: float) -> np.ndarray:
     """Isotropic scales [M]: sqrt(mean squared distance to the 3 nearest other points),

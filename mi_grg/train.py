@@ -273,15 +273,17 @@ class Trainer:
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
         from .fdk import fdk
-        from .init import init_gaussians
+        from .init import init_gaussians, sigma_d_voxels
         geo, cfg = self.case.geometry, self.cfg
         fit_geo = geo.with_angles(geo.angles[self.fit_idx])
         vol = fdk(self.case.train[self.fit_idx], fit_geo)
         info = {}
         # The signed FDK is filtered: clipping first would lift the air's zero-mean noise to
         # a positive mean, and after the filter every voxel of the cube would pass tau.
+        sigma = sigma_d_voxels(cfg.sigma_d, geo.nVoxel, cfg.sigma_d_grid)
+        info["sigma_d_voxels"] = sigma
         g = init_gaussians(vol, geo, n_points=cfg.n_points, tau=cfg.init_tau,
-                           sigma_d=cfg.sigma_d or None, density_rescale=cfg.density_rescale,
+                           sigma_d=sigma or None, density_rescale=cfg.density_rescale,
                            seed=cfg.seed, info=info)
         if cfg.use_graph_field:
             # The graph-augmented field multiplies each kernel's density by 1 + sum_i w_ij

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.experiments import (EXPERIMENTS, SuiteError, load_suite, plan_experiment,
-                                run_experiment, stale_options)
+from mi_grg.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
+                                plan_experiment, run_experiment, stale_options)
 from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, summary_lines,
                            write_report)
 
@@ -273,6 +273,28 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
     assert "replayed_stop: 60" in md and "best_heldout_iteration: 20" in md
     assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
     assert len(load_runs(out)["iterations"]) == 1
+
+
+def test_longest_runs_are_started_first(tmp_path):
+    """Trained runs before the baselines, the fuller volume's first, no-stop runs first
+    among equals; the order comes from the data sets on disk."""
+    suite = load_suite(_suite(tmp_path, methods=("fdk", "sart", "r2", "gr")))
+    out = tmp_path / "out"
+    specs = plan_experiment("table1", suite)
+    for name, fill in (("shepp", 0.25), ("blob", 0.75)):
+        d = out / "data" / name
+        d.mkdir(parents=True)
+        v = np.zeros(64, np.float32)
+        v[:int(fill * 64)] = 1.0
+        np.save(d / "vol_gt.npy", v.reshape(4, 4, 4))
+    cost = {(s.case.name, s.method): expected_cost(s, out) for s in specs}
+    assert cost[("blob", "gr")] == pytest.approx(1.75) and cost[("shepp", "r2")] == 1.25
+    assert cost[("blob", "sart")] > cost[("blob", "fdk")] == 0.0
+    order = [(s.case.name, s.method) for s in sorted(specs, key=lambda s: -expected_cost(s, out))]
+    assert order[:4] == [("blob", "r2"), ("blob", "gr"), ("shepp", "r2"), ("shepp", "gr")]
+    assert {m for _, m in order[-2:]} == {"fdk"}
+    nostop = [s for s in plan_experiment("iterations", suite) if s.run.endswith("nostop")]
+    assert nostop and expected_cost(nostop[0], out) > cost[(nostop[0].case.name, "gr")]
 
 
 def test_repo_suites_are_valid():

@@ -5,7 +5,7 @@ from scipy.ndimage import gaussian_filter
 
 import mi_grg
 from mi_grg.init import (InitError, auto_density_rescale, default_radius, denoise_volume,
-                         init_gaussians)
+                         init_gaussians, sigma_d_voxels)
 
 
 @pytest.mark.parametrize("mode", ["reflect", "nearest", "constant"])
@@ -138,3 +138,16 @@ def test_auto_density_rescale_fits_the_field(rng):
     assert 0.02 < c < 0.5
     assert auto_density_rescale(p, s, v, n_neighbors=400) == pytest.approx(
         np.sum(v * field) / np.sum(field ** 2), rel=1e-6)
+
+
+def test_sigma_d_is_a_length_scaled_to_the_grid():
+    # the paper's 3 voxels at 256^3 are 3/256 of the longest edge on any grid
+    assert sigma_d_voxels(3.0, (64, 64, 64)) == pytest.approx(0.75)
+    assert sigma_d_voxels(3.0, (128, 96, 64), grid=256) == pytest.approx(1.5)
+    assert sigma_d_voxels(3.0, (256, 256, 256)) == pytest.approx(3.0)
+    assert sigma_d_voxels(3.0, (64, 64, 64), grid=0) == 3.0     # the case's own voxels
+    assert sigma_d_voxels(0.0, (64, 64, 64)) == 0.0              # no filter (R2)
+    for bad in (dict(sigma_d=-1.0), dict(sigma_d=float("nan")), dict(grid=-2), dict(grid=1.5)):
+        kw = {"sigma_d": 3.0, "grid": 256, **bad}
+        with pytest.raises(InitError, match="sigma_d"):
+            sigma_d_voxels(kw["sigma_d"], (64, 64, 64), kw["grid"])

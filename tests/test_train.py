@@ -119,6 +119,24 @@ def test_graph_field_starts_from_the_same_field_as_the_plain_init(tiny_case):
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * b.max())
 
 
+def test_de_init_filter_width_follows_the_grid(tiny_case, monkeypatch):
+    """sigma_d reaches the filter as sigma_d x max(nVoxel) / sigma_d_grid voxels."""
+    import mi_grg.init as init
+    seen = []
+    real = init.denoise_volume
+    monkeypatch.setattr(init, "denoise_volume",
+                        lambda vol, sigma_d, **kw: seen.append(sigma_d) or real(vol, sigma_d, **kw))
+    a = Trainer(tiny_case, make_config("gr", **TINY), progress=False)        # 16^3 case
+    b = Trainer(tiny_case, make_config("gr", sigma_d_grid=0, **TINY), progress=False)
+    c = Trainer(tiny_case, make_config("r2", **TINY), progress=False)
+    assert seen == [pytest.approx(3.0 * 16 / 256), 3.0, None]
+    assert a.init_info["sigma_d_voxels"] == pytest.approx(0.1875)
+    assert b.init_info["sigma_d_voxels"] == 3.0 and c.init_info["sigma_d_voxels"] == 0.0
+    # the filter width changes the initial densities
+    assert not np.array_equal(np.asarray(a.state.raw["raw_densities"]),
+                              np.asarray(b.state.raw["raw_densities"]))
+
+
 def test_unknown_option_is_rejected(tiny_case):
     with pytest.raises(ValueError, match="did you mean 'lambda_lap'"):
         mi_grg.reconstruct(tiny_case, "gr", lamda_lap=1.0)
