@@ -57,6 +57,18 @@ def iteration_rule(geometry) -> int:
     return max(500, int(round(1500 * math.sqrt(max(geometry.nVoxel) / 64))))
 
 
+def gaussian_cap(cfg: TrainConfig, geometry) -> int:
+    """Densification cap: min(max_gaussians, ceil(max_gaussians_per_voxel x voxel count)).
+
+    64^3 -> 131072, 128^3 and up -> the 500k of ``max_gaussians``. A per-voxel factor of 0
+    leaves ``max_gaussians`` alone."""
+    cap = int(cfg.max_gaussians)
+    if cfg.max_gaussians_per_voxel > 0:
+        voxels = int(np.prod(np.asarray(geometry.nVoxel, dtype=np.int64)))
+        cap = min(cap, max(1, math.ceil(cfg.max_gaussians_per_voxel * voxels)))
+    return cap
+
+
 def _scaled(cfg: TrainConfig, iterations: int) -> dict:
     """Densification window and eval/checkpoint intervals, scaled from the paper's 30k."""
     f = iterations / 30000.0
@@ -239,7 +251,8 @@ class Trainer:
         dcfg = DensifyConfig.from_train_config(cfg)
         dcfg = DensifyConfig(**{**dcfg.to_dict(), "start": sched["densify_start"],
                                 "stop": sched["densify_stop"],
-                                "interval": sched["densify_interval"]})
+                                "interval": sched["densify_interval"],
+                                "max_count": gaussian_cap(cfg, geo)})
         self.densifier = PGADensifier(dcfg, seed=cfg.seed)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
@@ -467,6 +480,7 @@ class Trainer:
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds, "schedule": self.sched,
+                   "max_gaussians": self.densifier.config.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info}
         if self.out is not None:
             save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)

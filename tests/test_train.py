@@ -137,6 +137,36 @@ def test_de_init_filter_width_follows_the_grid(tiny_case, monkeypatch):
                               np.asarray(b.state.raw["raw_densities"]))
 
 
+def test_gaussian_cap_follows_the_voxel_count():
+    from mi_grg.train import gaussian_cap
+    geo64 = default_geometry(n=64, det=96, views=5)
+    geo128 = default_geometry(n=128, det=192, views=5)
+    assert gaussian_cap(make_config("gr"), geo64) == 64 ** 3 // 2
+    assert gaussian_cap(make_config("r2"), geo64) == 64 ** 3 // 2     # same rule for both
+    assert gaussian_cap(make_config("gr"), geo128) == 500000          # max_gaussians binds
+    assert gaussian_cap(make_config("gr", max_gaussians_per_voxel=0), geo64) == 500000
+    assert gaussian_cap(make_config("gr", max_gaussians_per_voxel=1e-9), geo64) == 1
+    with pytest.raises(ValueError, match="max_gaussians_per_voxel"):
+        make_config("gr", max_gaussians_per_voxel=-0.5)
+
+
+def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):
+    """16^3 = 4096 voxels x 0.12 -> at most 492 Gaussians, below max_gaussians = 800."""
+    t = Trainer(tiny_case, make_config("gr", iterations=120, max_gaussians_per_voxel=0.12,
+                                       **{**TINY, "n_points": 300}), progress=False)
+    assert t.densifier.config.max_count == 492
+    info = t.run()
+    assert info["max_gaussians"] == 492
+    assert info["n_gaussians"] <= 492
+    peak = max(r["n_gaussians"] for r in t.state.log)
+    assert 470 <= peak <= 492            # reached it (pruning may take a few off after)
+    free = Trainer(tiny_case, make_config("gr", iterations=120, max_gaussians_per_voxel=0,
+                                          **{**TINY, "n_points": 300}), progress=False)
+    assert free.densifier.config.max_count == 800
+    free.run()
+    assert max(r["n_gaussians"] for r in free.state.log) > 492     # the cap did bind
+
+
 def test_unknown_option_is_rejected(tiny_case):
     with pytest.raises(ValueError, match="did you mean 'lambda_lap'"):
         mi_grg.reconstruct(tiny_case, "gr", lamda_lap=1.0)
