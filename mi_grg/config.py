@@ -58,7 +58,9 @@ class TrainConfig:
     # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
     # eval_every) is the paper's for 30k iterations and is scaled to the run's length
     use_pga: bool = True           # graph term in the densification gradient
-    lambda_g: float = 1e-4
+    lambda_g: float = 1e-4         # paper's; at 64^3 its term is ~0.2 % of the gradient
+                                   # term, so PGA barely changes densification
+                                   # (measured: docs/benchmarks.md)
     densify_interval: int = 100
     densify_start: int = 500
     densify_stop: int = 15000
