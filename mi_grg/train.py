@@ -61,7 +61,9 @@ def gaussian_cap(cfg: TrainConfig, geometry) -> int:
     """Densification cap: min(max_gaussians, ceil(max_gaussians_per_voxel x voxel count)).
 
     64^3 -> 131072, 128^3 and up -> the 500k of ``max_gaussians``. A per-voxel factor of 0
-    leaves ``max_gaussians`` alone."""
+    leaves ``max_gaussians`` alone. Below about 46^3 the default 50k De-Init points (capped
+    by the candidate voxels) can already reach the cap; densification then only refills
+    what pruning removes."""
     cap = int(cfg.max_gaussians)
     if cfg.max_gaussians_per_voxel > 0:
         voxels = int(np.prod(np.asarray(geometry.nVoxel, dtype=np.int64)))
