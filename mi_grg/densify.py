@@ -100,7 +100,9 @@ class DensifyConfig:
     @classmethod
     def from_train_config(cls, cfg) -> "DensifyConfig":
         """From a ``mi_grg.config.TrainConfig`` (its field names differ); other fields
-        keep their defaults."""
+        keep their defaults. The schedule and ``max_count`` are the config's as written:
+        the trainer scales the window to the run's length and lowers the cap to
+        ``mi_grg.train.gaussian_cap`` (``max_gaussians_per_voxel`` needs the grid)."""
         return cls(interval=cfg.densify_interval, start=cfg.densify_start,
                    stop=cfg.densify_stop, tau_pos=cfg.densify_grad_threshold,
                    lambda_g=cfg.lambda_g, use_graph=cfg.use_pga, max_count=cfg.max_gaussians)

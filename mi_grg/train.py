@@ -18,6 +18,7 @@ Units: the loop works in the case's units (R2-Gaussian's normalised scene, volum
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -250,11 +251,11 @@ class Trainer:
         self.fit_idx, self.held_idx = np.flatnonzero(~held), np.flatnonzero(held)
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(n)]
-        dcfg = DensifyConfig.from_train_config(cfg)
-        dcfg = DensifyConfig(**{**dcfg.to_dict(), "start": sched["densify_start"],
-                                "stop": sched["densify_stop"],
-                                "interval": sched["densify_interval"],
-                                "max_count": gaussian_cap(cfg, geo)})
+        # The config's window and cap are the paper's; this run's depend on its length and grid.
+        dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
+                                   start=sched["densify_start"],
+                                   stop=sched["densify_stop"], interval=sched["densify_interval"],
+                                   max_count=gaussian_cap(cfg, geo))
         self.densifier = PGADensifier(dcfg, seed=cfg.seed)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0

@@ -152,16 +152,17 @@ def test_gaussian_cap_follows_the_voxel_count():
 
 def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):
     """16^3 = 4096 voxels x 0.12 -> at most 492 Gaussians, below max_gaussians = 800."""
-    t = Trainer(tiny_case, make_config("gr", iterations=120, max_gaussians_per_voxel=0.12,
-                                       **{**TINY, "n_points": 300}), progress=False)
+    opts = {**TINY, "n_points": 300, "iterations": 120}
+    t = Trainer(tiny_case, make_config("gr", max_gaussians_per_voxel=0.12, **opts),
+                progress=False)
     assert t.densifier.config.max_count == 492
     info = t.run()
     assert info["max_gaussians"] == 492
     assert info["n_gaussians"] <= 492
     peak = max(r["n_gaussians"] for r in t.state.log)
     assert 470 <= peak <= 492            # reached it (pruning may take a few off after)
-    free = Trainer(tiny_case, make_config("gr", iterations=120, max_gaussians_per_voxel=0,
-                                          **{**TINY, "n_points": 300}), progress=False)
+    free = Trainer(tiny_case, make_config("gr", max_gaussians_per_voxel=0, **opts),
+                   progress=False)
     assert free.densifier.config.max_count == 800
     free.run()
     assert max(r["n_gaussians"] for r in free.state.log) > 492     # the cap did bind
