@@ -22,6 +22,9 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 
+#: ``TrainConfig.keep_state`` values.
+KEEP_STATES = ("latest", "best")
+
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
     "gr": {},
@@ -93,6 +96,8 @@ class TrainConfig:
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row
                                    # (1: the paper's rule; why 2: mi_grg.early_stop)
+    keep_state: str = "latest"     # state kept: "latest" within stop_drop of the best
+                                   # held-out PSNR, or "best" (why: mi_grg.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no
@@ -115,6 +120,9 @@ class TrainConfig:
             raise ConfigError("lr_final_ratio must be in (0, 1]")
         if self.n_points < 1:
             raise ConfigError("n_points must be >= 1")
+        if self.keep_state not in KEEP_STATES:
+            raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
+                              f"got {self.keep_state!r}")
         zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval", "tv_every",
                             "stop_patience") if getattr(self, n) < 1]
         if zero:
@@ -149,6 +157,10 @@ def _coerce(key: str, value):
                     raise ValueError
                 return value.lower() == "true"
             if not isinstance(value, bool):
+                raise ValueError
+            return value
+        if kind == "str":
+            if not isinstance(value, str):
                 raise ValueError
             return value
         if kind == "int":
@@ -196,7 +208,7 @@ def write_config_xml(config: TrainConfig, path, method: str | None = None) -> No
     lines = [f'<training version="1"{method_attr}>']
     for f in fields(config):
         v = getattr(config, f.name)
-        text = str(v).lower() if isinstance(v, bool) else repr(v)
+        text = str(v).lower() if isinstance(v, bool) else v if isinstance(v, str) else repr(v)
         lines.append(f'    <{_TAG_OF_TYPE[f.type]} name="{f.name}" value="{text}"/>')
     lines.append("</training>\n")
     with open(path, "w") as fh:

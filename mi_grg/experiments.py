@@ -13,6 +13,8 @@ lists, or every one when it lists none):
     iterations  held-out-view PSNR and 3-D PSNR against iteration, early stop marked
     speed       3-D PSNR against wall-clock time for every method
     views       10 / 25 / 50 / 75 training views
+    seeds       r2 and gr with several training seeds (default 0, 1, 2): the run-to-run
+                spread that a difference between the two must exceed to count
 
 Layout: ``OUT/data/<case>/`` (simulated once, R2-Gaussian layout, reused),
 ``OUT/<experiment>/<case>/<run>/`` (the reconstruction contract's files plus run_spec.json,
@@ -45,7 +47,13 @@ from pathlib import Path
 
 import numpy as np
 
-EXPERIMENTS = ("table1", "table2", "table3", "iterations", "speed", "views")
+EXPERIMENTS = ("table1", "table2", "table3", "iterations", "speed", "views", "seeds")
+#: Keys each experiment's block in a suite may set (anything else is an error).
+EXPERIMENT_KEYS = {"table1": ("methods", "cases"), "table2": ("cases",),
+                   "table3": ("k", "sigma_d", "cases"),
+                   "iterations": ("methods", "log_3d_every", "cases"),
+                   "speed": ("methods", "cases"), "views": ("views", "methods", "cases"),
+                   "seeds": ("seeds", "methods", "cases")}
 ALL_METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
 CATEGORIES = {"HO": "human organs / organ-like", "BS": "biological specimens",
               "AO": "artificial objects"}
@@ -186,6 +194,12 @@ def load_suite(path) -> Suite:
     if bad:
         raise SuiteError(f"{path}: unknown experiment(s) {bad}; known: {list(EXPERIMENTS)}")
     for ename, cfg in ex.items():
+        if cfg is not None and not isinstance(cfg, dict):
+            raise SuiteError(f"{path}: experiments.{ename} must be an object")
+        unknown = sorted(set(cfg or {}) - set(EXPERIMENT_KEYS[ename]))
+        if unknown:
+            raise SuiteError(f"{path}: experiments.{ename} has unknown key(s) {unknown}; "
+                             f"known: {list(EXPERIMENT_KEYS[ename])}")
         for cname in (cfg or {}).get("cases") or []:
             if cname not in seen:
                 raise SuiteError(f"{path}: experiments.{ename}.cases names unknown case "
@@ -348,6 +362,14 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
                     case, views=v, data_name=f"{case.name}_v{v}")
                 for m in ecfg.get("methods") or ALL_METHODS:
                     add(vc, f"{m}_v{v}", m, _opts(suite, m), f"{m}, {v} views")
+        elif name == "seeds":
+            # The training seed draws the De-Init sample, the view order, the TV blocks and
+            # the split positions; the data (and its noise) stay fixed. Seed 0 is Table 1's
+            # run (same options), linked rather than run again.
+            for sd in ecfg.get("seeds") or [0, 1, 2]:
+                for m in ecfg.get("methods") or TRAINED:
+                    add(case, f"{m}_s{int(sd)}", m, _opts(suite, m, seed=int(sd)),
+                        f"{m}, seed {int(sd)}")
     return specs
 
 

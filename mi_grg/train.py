@@ -5,7 +5,8 @@
     block (every ``tv_every``-th iteration, weighted ``tv_every`` x) + lambda_lap graph
     Laplacian -> Adam -> PGA densification every 100 iterations
     (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
-    early stop, keeping the best state.
+    early stop, keeping the latest state within the stop margin of the best (or the best:
+    ``keep_state``).
 
 Every component is switched by ``TrainConfig`` (``mi_grg.config``), so one loop runs
 R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
@@ -48,14 +49,22 @@ LOG_FIELDS = ("iteration", "seconds", "loss", "heldout_psnr", "psnr_3d", "n_gaus
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
-    1500 x sqrt(max(nVoxel) / 64), at least 500: 48^3 -> 1300, 64^3 -> 1500,
-    128^3 -> 2120, 256^3 -> 3000. Measured on the 2-core CPU (2 threads): a 64^3 case
-    then takes 2.6-4.4 min (r2) and 3.1-5.5 min (gr) on three phantoms, and the 3-D PSNR
-    is still rising there (docs/benchmarks.md). Fewer is not a free speed-up: r2 with
-    1000 iterations at 64^3 scored 26.9 dB against 29.9 dB at 1500. The
-    schedule (densification window, eval interval) scales with it (``_scaled``).
+    n = max(nVoxel): 1500 x n / 64 from 64^3 up (128^3 -> 3000, 256^3 -> 6000), and
+    1500 x sqrt(n / 64), at least 500, below (48^3 -> 1299, 16^3 -> 750).
+
+    Why linear above 64^3: on shepp 128^3 (25 views of 192^2) the older square-root rule
+    gave 2121 iterations, and the 3-D PSNR was still rising by 0.1 dB per 125 iterations at
+    the end (gr 30.46 dB, r2 30.39 dB); with 3000, gr reached 31.55 dB and r2 31.89 dB
+    (docs/benchmarks.md). At 64^3 (1500) the 3-D PSNR is still rising too, but the time
+    target (5 min per case on 2 cores) leaves no room; fewer is not a free speed-up there:
+    r2 with 1000 iterations scored 26.9 dB against 29.9 dB at 1500. Below 64^3 the square
+    root is kept (nothing measured suggests otherwise). The schedule (densification window,
+    evaluation interval) scales with it (``_scaled``).
     """
-    return max(500, int(round(1500 * math.sqrt(max(geometry.nVoxel) / 64))))
+    n = max(geometry.nVoxel)
+    if n >= 64:
+        return int(round(1500 * n / 64))
+    return max(500, int(round(1500 * math.sqrt(n / 64))))
 
 
 def gaussian_cap(cfg: TrainConfig, geometry) -> int:
@@ -88,8 +97,8 @@ class TrainState:
     raw: dict
     rng: dict
     log: list = field(default_factory=list)
-    best_raw: dict | None = None
-    best_density_scale: object = None
+    kept_raw: dict | None = None
+    kept_density_scale: object = None
     graph_positions: object = None   # positions [N, 3] the current graph was built from
     stopper: dict | None = None
     stopped_by: str | None = None
@@ -130,10 +139,10 @@ def _atomic_savez(path: Path, **arrays) -> None:
 
 def save_checkpoint(path, state: TrainState, optimizer, densifier, cfg: TrainConfig) -> None:
     arrays = {f"raw__{k}": v for k, v in _raw_to_numpy(state.raw).items()}
-    if state.best_raw is not None:
-        arrays.update({f"best__{k}": v for k, v in _raw_to_numpy(state.best_raw).items()})
-        if state.best_density_scale is not None:
-            arrays["best_density_scale"] = np.asarray(state.best_density_scale)
+    if state.kept_raw is not None:
+        arrays.update({f"kept__{k}": v for k, v in _raw_to_numpy(state.kept_raw).items()})
+        if state.kept_density_scale is not None:
+            arrays["kept_density_scale"] = np.asarray(state.kept_density_scale)
     if state.graph_positions is not None:
         arrays["graph_positions"] = np.asarray(state.graph_positions, np.float32)
     opt = optimizer.state_dict()   # {group: {"m": [N, C], "v": [N, C], "step": int}}
@@ -159,8 +168,8 @@ def load_checkpoint(path, optimizer, densifier, cfg: TrainConfig) -> TrainState:
             raise ValueError(f"checkpoint {path} was made with a different config "
                              f"(differs in {changed}); resume with the same options")
         raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
-        best = (_raw_from_numpy({k: f[f"best__{k}"] for k in _RAW_TYPES})
-                if "best__positions" in f.files else None)
+        kept = (_raw_from_numpy({k: f[f"kept__{k}"] for k in _RAW_TYPES})
+                if "kept__positions" in f.files else None)
         opt_state = {}
         for name, step in meta["adam_steps"].items():
             opt_state[name] = {"m": f[f"adam_m__{name}"], "v": f[f"adam_v__{name}"],
@@ -170,11 +179,11 @@ def load_checkpoint(path, optimizer, densifier, cfg: TrainConfig) -> TrainState:
         if "dens_grad" in f.files:
             densifier.grad_accum = mi.Float(f["dens_grad"])
             densifier.view_count = mi.Float(f["dens_count"])
-        best_ds = (mi.Float(f["best_density_scale"]) if "best_density_scale" in f.files
+        kept_ds = (mi.Float(f["kept_density_scale"]) if "kept_density_scale" in f.files
                    else None)
         graph_pos = f["graph_positions"] if "graph_positions" in f.files else None
     return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
-                      best_raw=best, best_density_scale=best_ds, stopper=meta["stopper"],
+                      kept_raw=kept, kept_density_scale=kept_ds, stopper=meta["stopper"],
                       stopped_by=meta["stopped_by"], seconds=meta["seconds"],
                       graph_positions=graph_pos)
 
@@ -213,7 +222,7 @@ def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
                   color="tab:red", label="3-D vs ground truth")
         ax1b.set_ylabel("3-D PSNR (dB)", color="tab:red")
     if stop_iteration is not None:
-        ax[1].axvline(stop_iteration, color="k", ls=":", label="best / stop")
+        ax[1].axvline(stop_iteration, color="k", ls=":", label="kept state")
     ax[1].set_title("PSNR (dB)")
     if ax[1].get_legend_handles_labels()[0]:
         ax[1].legend(loc="lower right", fontsize=8)
@@ -448,10 +457,11 @@ class Trainer:
                     if cfg.monitor_3d:
                         self.stopper.label = "3-D PSNR vs ground truth (research option)"
                     verdict = self.stopper.update(it, watched)
-                    if verdict == "improved":
-                        st.best_raw = {k: dr.detach(v) for k, v in raw.items()}
+                    keep = ("improved",) if cfg.keep_state == "best" else ("improved", "within")
+                    if verdict in keep:
+                        st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
                         ds = self._density_scale()
-                        st.best_density_scale = None if ds is None else mi.Float(ds)
+                        st.kept_density_scale = None if ds is None else mi.Float(ds)
                     elif verdict == "stop":
                         st.stopped_by = self.stopper.reason
                 st.stopper = self.stopper.state()
@@ -470,15 +480,17 @@ class Trainer:
         if st.stopped_by is None:
             st.stopped_by = (f"iteration budget ({self.iterations}) reached"
                              if st.iteration >= self.iterations else "interrupted")
-        if st.best_raw is not None:
-            final, self.final_density_scale = st.best_raw, st.best_density_scale
+        if st.kept_raw is not None:
+            final, self.final_density_scale = st.kept_raw, st.kept_density_scale
         else:
             final, self.final_density_scale = st.raw, self._density_scale()
-        if cfg.refit_iterations and st.best_raw is not None and "budget" not in st.stopped_by:
+        if cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by:
             final = self._refit(final, cfg.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
                    "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
+                   "kept_iteration": (self.stopper.best_iteration if cfg.keep_state == "best"
+                                      else self.stopper.kept_iteration),
                    "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
@@ -488,8 +500,8 @@ class Trainer:
         if self.out is not None:
             save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)
             write_log(self.out, st.log)
-            plot_log(self.out / "train_log.png", st.log, self.stopper.best_iteration
-                     if self.stopper.best_iteration > 0 else None)
+            plot_log(self.out / "train_log.png", st.log, summary["kept_iteration"]
+                     if summary["kept_iteration"] > 0 else None)
             g = Gaussians.from_raw(final)
             g.save_npz(self.out / "gaussians.npz")
             from .ply import save_ply

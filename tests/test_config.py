@@ -19,7 +19,7 @@ def test_r2_preset_switches_every_graph_component_off():
 
 
 def test_file_round_trip_and_precedence(tmp_path):
-    base = make_config("gr", k=7, lambda_tv=0.1, monitor_3d=True)
+    base = make_config("gr", k=7, lambda_tv=0.1, monitor_3d=True, keep_state="best")
     path = tmp_path / "cfg.xml"
     write_config_xml(base, path, method="gr")
     assert make_config("gr", path) == base
@@ -37,6 +37,8 @@ def test_file_round_trip_and_precedence(tmp_path):
     ('<training method="r2"/>', "not 'gr'"),
     ('<training><float name="lambda_tv" value="nan"/></training>', "finite"),
     ('<training><float name="lambda_tv" value="-1"/></training>', "lambda_tv"),
+    ('<training><string name="keep_state" value="first"/></training>', "keep_state.*latest"),
+    ('<training><integer name="keep_state" value="1"/></training>', "string"),
 ])
 def test_bad_files_name_the_problem(tmp_path, xml, match):
     path = tmp_path / "bad.xml"
@@ -52,6 +54,8 @@ def test_bad_overrides_and_methods():
         make_config("gr2")
     with pytest.raises(ConfigError, match="integer|int"):
         make_config("gr", k=2.5)
+    with pytest.raises(ConfigError, match="keep_state expects a str"):
+        make_config("gr", keep_state=1)
 
 
 def test_shipped_configs_are_complete(tmp_path):

@@ -11,8 +11,8 @@ import pytest
 import mi_grg
 from mi_grg.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
                                 plan_experiment, run_experiment, stale_options)
-from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, summary_lines,
-                           write_report)
+from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
+                           summary_lines, write_report)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -305,7 +305,7 @@ def test_repo_suites_are_valid():
         for c in suite.cases:
             assert (c.views, c.n, c.det) == (25, n, det)
             assert c.noise == {"I0": 1e4, "electronic_std": 10.0}
-        for name in ("table1", "table2", "table3", "iterations", "speed", "views"):
+        for name in EXPERIMENTS:
             assert plan_experiment(name, suite), name
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
@@ -339,3 +339,51 @@ def test_suite_validation(tmp_path):
     p.write_text(json.dumps(bad))
     with pytest.raises(SuiteError, match="seed"):
         load_suite(p)
+
+
+def test_seeds_plan_shares_seed_0_with_table1(tmp_path):
+    raw = json.loads(_suite(tmp_path).read_text())
+    raw["experiments"] = {"table1": {"methods": ["r2", "gr"]},
+                          "seeds": {"seeds": [0, 4], "cases": ["shepp"]}}
+    path = tmp_path / "seeds.json"
+    path.write_text(json.dumps(raw))
+    suite = load_suite(path)
+    runs = {s.run: s for s in plan_experiment("seeds", suite)}
+    assert sorted(runs) == ["gr_s0", "gr_s4", "r2_s0", "r2_s4"]
+    assert runs["gr_s4"].options == {"seed": 4} and runs["gr_s0"].options == {}
+    t1 = {s.run: s for s in plan_experiment("table1", suite) if s.case.name == "shepp"}
+    assert runs["gr_s0"].key() == t1["gr"].key() != runs["gr_s4"].key()
+    res = run_experiment("all", path, tmp_path / "out", dry_run=True)
+    assert res["duplicate"] == 2 and res["todo"] == 2 * 2 + 2     # table1 (2 cases) + s4
+
+
+def test_unknown_experiment_key_is_an_error(tmp_path):
+    raw = json.loads(_suite(tmp_path).read_text())
+    raw["experiments"] = {"seeds": {"seed": [1, 2]}}
+    path = tmp_path / "typo.json"
+    path.write_text(json.dumps(raw))
+    with pytest.raises(SuiteError, match=r"experiments.seeds has unknown key\(s\) \['seed'\]"):
+        load_suite(path)
+
+
+def test_seeds_table_pairs_runs_by_seed(tmp_path):
+    out = tmp_path / "res"
+    vals = {"a": {0: (30.0, 30.3), 1: (30.2, 30.1), 2: (29.9, 30.4)},
+            "b": {0: (25.0, 25.5), 1: (25.1, None)}}          # seed 1 of b: gr missing
+    for case, per in vals.items():
+        for sd, (r2, gr) in per.items():
+            _fake_run(out, "seeds", case, f"r2_s{sd}", "HO", "r2", psnr_3d=r2)
+            if gr is not None:
+                _fake_run(out, "seeds", case, f"gr_s{sd}", "HO", "gr", psnr_3d=gr)
+    h, body, pooled = seeds_table(load_runs(out)["seeds"])
+    rows = {r[0]: dict(zip(h, r)) for r in body}
+    d = np.array([0.3, -0.1, 0.5, 0.5])
+    assert rows["a"]["gr − r2 (paired)"] == f"{np.mean(d[:3]):.2f} ± {np.std(d[:3], ddof=1):.2f}"
+    assert rows["a"]["gr ahead"] == "2 of 3" and rows["a"]["range of gr − r2"] == "-0.10 .. +0.50"
+    assert rows["b"]["r2 PSNR"].startswith("25.05 ± ") and rows["b"]["gr PSNR"] == "25.50"
+    assert pooled["n"] == 4 and abs(pooled["mean"] - d.mean()) < 1e-12
+    assert abs(pooled["se"] - np.std(d, ddof=1) / 2) < 1e-12
+    md = write_report(out, tmp_path / "r.md").read_text()
+    assert "## Training seeds" in md and "all (4 pairs)" in md
+    verdict = "exceeds" if d.mean() > 2 * np.std(d, ddof=1) / 2 else "does not exceed"
+    assert f"the mean {verdict} twice its standard error" in md

@@ -150,6 +150,17 @@ def test_gaussian_cap_follows_the_voxel_count():
         make_config("gr", max_gaussians_per_voxel=-0.5)
 
 
+def test_iteration_rule_is_linear_from_64_and_a_square_root_below(tiny_case):
+    from mi_grg.train import iteration_rule
+    its = {n: iteration_rule(default_geometry(n=n, det=n, views=2)) for n in (8, 48, 64, 128)}
+    assert its == {8: 530, 48: 1299, 64: 1500, 128: 3000}
+    # the largest edge counts: a 64 x 64 x 256 slab plans like 256^3
+    slab = dataclasses.replace(default_geometry(n=64, det=96, views=2), nVoxel=(64, 64, 256))
+    assert iteration_rule(slab) == 6000
+    t = Trainer(tiny_case, make_config("gr", **TINY), progress=False)
+    assert t.iterations == iteration_rule(t.case.geometry) == 750    # 16^3: config 0 = rule
+
+
 def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):
     """16^3 = 4096 voxels x 0.12 -> at most 492 Gaussians, below max_gaussians = 800."""
     opts = {**TINY, "n_points": 300, "iterations": 120}
@@ -173,28 +184,33 @@ def test_unknown_option_is_rejected(tiny_case):
         mi_grg.reconstruct(tiny_case, "gr", lamda_lap=1.0)
 
 
-def test_early_stop_on_held_out_views_keeps_the_best_state(tiny_case, monkeypatch):
+@pytest.mark.parametrize("keep, kept_at", [("latest", 500), ("best", 375)])
+def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypatch, keep,
+                                                              kept_at):
     """A held-out PSNR that falls by more than stop_drop ends the run before its budget,
-    names the rule, and returns the state of the best evaluation."""
-    # 600 iterations: evaluations every 125; states are judged only after densification
-    # ends (300), so 375 is the first candidate and the drop at 500 stops the run.
-    t = Trainer(tiny_case, make_config("gr", iterations=600, stop_patience=1, **TINY),
-                progress=False)
-    scores = iter([20.0, 20.0, 20.0, 19.0, 18.0])
+    names the rule, and returns the state of the latest evaluation within stop_drop of the
+    best ("latest") or of the best one ("best")."""
+    # 750 iterations: evaluations every 125; states are judged only after densification
+    # ends (375), so 375 is the first candidate (the best), 500 lies 0.25 % below it
+    # (within the 0.5 % margin) and the drop at 625 stops the run.
+    t = Trainer(tiny_case, make_config("gr", iterations=750, stop_patience=1,
+                                       keep_state=keep, **TINY), progress=False)
+    scores = iter([20.0, 20.0, 20.0, 19.95, 18.0, 18.0])
     monkeypatch.setattr(t, "_heldout_psnr", lambda raw: next(scores))
-    kept = {}
+    seen = {}
     real_update = t.stopper.update
 
     def spy(it, value):
-        verdict = real_update(it, value)
-        if verdict == "improved":
-            kept[it] = np.asarray(t.state.raw["raw_densities"]).copy()
-        return verdict
+        seen[it] = np.asarray(t.state.raw["raw_densities"]).copy()
+        return real_update(it, value)
     monkeypatch.setattr(t.stopper, "update", spy)
     info = t.run()
-    assert info["iterations_run"] == 500 < info["iterations_planned"]
+    assert sorted(seen) == [375, 500, 625]
+    assert info["iterations_run"] == 625 < info["iterations_planned"]
     assert "held-out" in info["stopped_by"] and info["best_iteration"] == 375
-    np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), kept[375])
+    assert info["kept_iteration"] == kept_at
+    np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), seen[kept_at])
+    assert not np.array_equal(seen[375], seen[500])       # the two candidates differ
     # the config's patience reaches the stopper (default 2: mi_grg.early_stop says why)
     assert make_config("gr").stop_patience == 2
     assert Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, **TINY),
