@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every run behind docs/results.md, then the report: the default CPU suite (about 50 min on
 # 2 cores), Table 2 on shepp and shell, Table 3 and the views sweep on shell (about 45 min
-# more), training seeds 1 and 2 of r2 and gr on shepp, needles and shell (about 25 min).
+# more), training seeds 1 and 2 of r2 and gr on shepp, needles and shell (29 min).
 # Finished runs are skipped, so a rerun only does what is missing or stale.
 #   bash experiments/run_cpu.sh [OUT] [extra experiment options, e.g. --dry-run]
 set -euo pipefail

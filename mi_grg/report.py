@@ -266,11 +266,11 @@ def seeds_table(rows) -> tuple[list, list, dict]:
         if m in ("r2", "gr") and sd.isdigit() and v is not None:
             by.setdefault(r["case"], {}).setdefault(int(sd), {})[m] = v
 
-    def ms(vals):
+    def ms(vals, sign=""):
         if not vals:
             return DASH
         sd = f" ± {np.std(vals, ddof=1):.2f}" if len(vals) > 1 else ""
-        return f"{np.mean(vals):.2f}{sd}"
+        return f"{np.mean(vals):{sign}.2f}{sd}"
 
     header = ["case", "seeds", "r2 PSNR", "gr PSNR", "gr − r2 (paired)", "range of gr − r2",
               "gr ahead"]
@@ -281,7 +281,7 @@ def seeds_table(rows) -> tuple[list, list, dict]:
         pooled_d += d
         body.append([case, str(len(seeds)), ms([x["r2"] for x in seeds.values() if "r2" in x]),
                      ms([x["gr"] for x in seeds.values() if "gr" in x]),
-                     ms(d), f"{min(d):+.2f} .. {max(d):+.2f}" if d else DASH,
+                     ms(d, "+"), f"{min(d):+.2f} .. {max(d):+.2f}" if d else DASH,
                      f"{sum(x > 0 for x in d)} of {len(d)}"])
     pooled = {}
     if pooled_d:
@@ -289,7 +289,7 @@ def seeds_table(rows) -> tuple[list, list, dict]:
         sd = float(np.std(pooled_d, ddof=1)) if n > 1 else float("nan")
         pooled = {"n": n, "mean": float(np.mean(pooled_d)), "sd": sd,
                   "se": sd / math.sqrt(n) if n > 1 else float("nan")}
-        body.append([f"all ({n} pairs)", "", "", "", ms(pooled_d),
+        body.append([f"all ({n} pairs)", "", "", "", ms(pooled_d, "+"),
                      f"{min(pooled_d):+.2f} .. {max(pooled_d):+.2f}",
                      f"{sum(x > 0 for x in pooled_d)} of {n}"])
     return header, body, pooled
@@ -612,6 +612,19 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
+    from .experiments import stale_options
+    older = {}
+    for exp, rows in all_rows.items():
+        for r in rows:
+            keys = stale_options(Path(r["dir"])) if r.get("metrics") else []
+            if keys:
+                older.setdefault(exp, [0, set()])[0] += 1
+                older[exp][1].update(keys)
+    if older:
+        lines += ["", "Runs made under other defaults than this code's (their numbers stand as "
+                      "they ran; `bash experiments/run_cpu.sh` re-runs them):", ""]
+        for exp, (n, keys) in sorted(older.items()):
+            lines.append(f"- {exp}: {n} r2 / gr run(s), differing in {', '.join(sorted(keys))}")
     if sart:
         lines += ["", "Iterative baselines: " + ", ".join(
             f"{m} n_iter={n}" for m, n in sorted(sart, key=str)) +
@@ -758,7 +771,9 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
                        else "does not exceed")
             md += [f"Pooled over the {pooled['n']} pairs: gr − r2 = {pooled['mean']:+.2f} dB, "
                    f"standard error {pooled['se']:.2f} dB; the mean {verdict} twice its "
-                   "standard error.", ""]
+                   "standard error. Pooling treats pairs from different cases as "
+                   "interchangeable; where the per-case differences disagree, read the "
+                   "rows.", ""]
     else:
         md += [_absent("seeds", out), ""]
 

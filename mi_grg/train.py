@@ -197,7 +197,7 @@ def write_log(out: Path, log: list) -> None:
     plot_log(out / "train_log.png", log)
 
 
-def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
+def plot_log(path, log: list, kept_iteration: int | None = None) -> None:
     """Loss, held-out PSNR (and 3-D PSNR when known) and Gaussian count per iteration."""
     from .plotting import _agg
     plt = _agg()
@@ -221,8 +221,8 @@ def plot_log(path, log: list, stop_iteration: int | None = None) -> None:
         ax1b.plot([r["iteration"] for r in ev3], [r["psnr_3d"] for r in ev3], "s--",
                   color="tab:red", label="3-D vs ground truth")
         ax1b.set_ylabel("3-D PSNR (dB)", color="tab:red")
-    if stop_iteration is not None:
-        ax[1].axvline(stop_iteration, color="k", ls=":", label="kept state")
+    if kept_iteration is not None:
+        ax[1].axvline(kept_iteration, color="k", ls=":", label="kept state")
     ax[1].set_title("PSNR (dB)")
     if ax[1].get_legend_handles_labels()[0]:
         ax[1].legend(loc="lower right", fontsize=8)

@@ -168,9 +168,12 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     assert stale_options(run_dir) == ["tv_every"]
     plan = run_experiment("table1", suite, out, dry_run=True)
     assert plan["todo"] == 1 and plan["runs"][0]["stale"] == ["tv_every"]
+    md = write_report(out, tmp_path / "r.md").read_text()     # the report says so
+    assert "- table1: 1 r2 / gr run(s), differing in tv_every" in md
     res = run_experiment("table1", suite, out, jobs=1, progress=False)
     assert res["ran"] == 1 and res["failed"] == 0
     assert stale_options(run_dir) == []
+    assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
 
 
 def _table_row(md: str, section: str, name: str) -> list:
@@ -378,7 +381,7 @@ def test_seeds_table_pairs_runs_by_seed(tmp_path):
     h, body, pooled = seeds_table(load_runs(out)["seeds"])
     rows = {r[0]: dict(zip(h, r)) for r in body}
     d = np.array([0.3, -0.1, 0.5, 0.5])
-    assert rows["a"]["gr − r2 (paired)"] == f"{np.mean(d[:3]):.2f} ± {np.std(d[:3], ddof=1):.2f}"
+    assert rows["a"]["gr − r2 (paired)"] == f"{np.mean(d[:3]):+.2f} ± {np.std(d[:3], ddof=1):.2f}"
     assert rows["a"]["gr ahead"] == "2 of 3" and rows["a"]["range of gr − r2"] == "-0.10 .. +0.50"
     assert rows["b"]["r2 PSNR"].startswith("25.05 ± ") and rows["b"]["gr PSNR"] == "25.50"
     assert pooled["n"] == 4 and abs(pooled["mean"] - d.mean()) < 1e-12
