@@ -14,8 +14,8 @@ at 1250 of 1500 with 3-D PSNR 29.79 dB; run to the end: 30.57 dB). TrainConfig's
 Which state to keep (``TrainConfig.keep_state``): the same wobble makes "the state with the
 highest held-out PSNR" an early state by chance. At 128^3 (shepp, gr) the best held-out value
 came at iteration 1375 (28.13 dB, 3-D PSNR 29.69 dB); the last evaluation at 2121 was 0.1 %
-below it (28.09 dB) with 3-D PSNR 30.46 dB. On the 64^3 suite, bone (both methods) and
-cement (r2) kept states 0.1-0.4 % below the best held-out value by 0.07-0.10 dB of 3-D PSNR.
+below it (28.09 dB) with 3-D PSNR 30.46 dB. On the 64^3 suite "latest" changed bone (gr
++0.08, r2 +0.09 dB), cement (r2 +0.10 dB) and mni152 (gr +0.03 dB), and nothing else.
 "latest" (the default) therefore keeps the LATEST state whose value lies within ``drop`` of
 the best (the stop rule's own noise margin: it does not call such a state worse); "best"
 keeps the literal maximum. ``update``'s verdict says which states qualify.
