@@ -22,8 +22,7 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 
-#: ``TrainConfig.keep_state`` values.
-KEEP_STATES = ("latest", "best")
+from .early_stop import KEEP_STATES
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {

@@ -18,12 +18,15 @@ below it (28.09 dB) with 3-D PSNR 30.46 dB. On the 64^3 suite "latest" changed b
 +0.08, r2 +0.09 dB), cement (r2 +0.10 dB) and mni152 (gr +0.03 dB), and nothing else.
 "latest" (the default) therefore keeps the LATEST state whose value lies within ``drop`` of
 the best (the stop rule's own noise margin: it does not call such a state worse); "best"
-keeps the literal maximum. ``update``'s verdict says which states qualify.
+keeps the literal maximum. ``EarlyStopper.kept_iteration`` names the state to hold.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+
+#: Which state a run keeps (``TrainConfig.keep_state``, ``EarlyStopper.keep``).
+KEEP_STATES = ("latest", "best")
 
 
 @dataclass
@@ -34,7 +37,8 @@ class EarlyStopper:
     ``update`` returns "improved" (a new best), "within" (below the best by at most ``drop``),
     "below" (further below, fewer than ``patience`` times in a row) or "stop"; ``reason`` says
     why the run stopped ("held-out PSNR fell ..."), ``best`` / ``best_iteration`` where it
-    peaked.
+    peaked. ``kept_iteration`` is the evaluation whose state the caller should hold: by
+    ``keep``, the latest "improved" or "within" one ("latest") or the best ("best").
     """
 
     drop: float = 0.005
@@ -42,7 +46,8 @@ class EarlyStopper:
     label: str = "held-out PSNR"
     best: float = -math.inf
     best_iteration: int = -1
-    kept_iteration: int = -1       # latest "improved" or "within" evaluation
+    keep: str = "latest"
+    kept_iteration: int = -1       # the evaluation whose state to keep (see ``keep``)
     history: list = field(default_factory=list)
     reason: str | None = None
     below: int = 0                 # evaluations in a row below the margin so far
@@ -52,6 +57,8 @@ class EarlyStopper:
             raise ValueError(f"drop must be a fraction in [0, 1), got {self.drop}")
         if int(self.patience) != self.patience or self.patience < 1:
             raise ValueError(f"patience must be an integer >= 1, got {self.patience}")
+        if self.keep not in KEEP_STATES:
+            raise ValueError(f"keep must be one of {', '.join(KEEP_STATES)}, got {self.keep!r}")
 
     def update(self, iteration: int, value: float) -> str:
         if not math.isfinite(value):
@@ -65,7 +72,9 @@ class EarlyStopper:
             return "improved"
         # PSNR can be negative in dB only for hopeless fits; use the magnitude for the margin.
         if value >= self.best - self.drop * abs(self.best):
-            self.below, self.kept_iteration = 0, int(iteration)
+            self.below = 0
+            if self.keep == "latest":
+                self.kept_iteration = int(iteration)
             return "within"
         self.below += 1
         if self.below < self.patience:

@@ -546,6 +546,11 @@ def stale_options(run_dir: Path) -> list:
         m = json.loads((Path(run_dir) / "metrics.json").read_text())
     except (OSError, ValueError):
         return []
+    return stale_keys(m)
+
+
+def stale_keys(m: dict) -> list:
+    """``stale_options`` for a run's metrics.json already read into ``m``."""
     from .config import PRESETS, TrainConfig, make_config
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):

@@ -612,11 +612,11 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
-    from .experiments import stale_options
+    from .experiments import stale_keys
     older = {}
     for exp, rows in all_rows.items():
         for r in rows:
-            keys = stale_options(Path(r["dir"])) if r.get("metrics") else []
+            keys = stale_keys(r["metrics"]) if r.get("metrics") else []
             if keys:
                 older.setdefault(exp, [0, set()])[0] += 1
                 older[exp][1].update(keys)

@@ -288,7 +288,8 @@ class Trainer:
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
-        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience)
+        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
+                                    keep=cfg.keep_state)
         if self.state.stopper:
             self.stopper.load_state(self.state.stopper)
         self.graph = None
@@ -457,8 +458,7 @@ class Trainer:
                     if cfg.monitor_3d:
                         self.stopper.label = "3-D PSNR vs ground truth (research option)"
                     verdict = self.stopper.update(it, watched)
-                    keep = ("improved",) if cfg.keep_state == "best" else ("improved", "within")
-                    if verdict in keep:
+                    if self.stopper.kept_iteration == it:
                         st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
                         ds = self._density_scale()
                         st.kept_density_scale = None if ds is None else mi.Float(ds)
@@ -489,8 +489,7 @@ class Trainer:
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
                    "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
-                   "kept_iteration": (self.stopper.best_iteration if cfg.keep_state == "best"
-                                      else self.stopper.kept_iteration),
+                   "kept_iteration": self.stopper.kept_iteration,
                    "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
