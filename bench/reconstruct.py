@@ -66,7 +66,6 @@ def main() -> int:
         print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2])))
         return 0
     out = Path(args.out)
-    key = lambda r: (r["phantom"], r["n"], r["method"])   # noqa: E731
     old = []
     if (out / "reconstruct.json").exists() and not args.fresh:
         old = json.loads((out / "reconstruct.json").read_text())["rows"]
@@ -84,18 +83,30 @@ def main() -> int:
                 print(f"{ph:8s} {n:4d}^3 {method:9s} {row['seconds']:8.1f} s  "
                       f"PSNR {row['psnr_3d']:6.2f}  SSIM {row['ssim_3d']:.3f}  "
                       f"peak {row['peak_rss_gb']:.2f} GB", flush=True)
+                write(out, old, rows)      # after every cell: a crash loses one cell at most
     new = {key(r) for r in rows}
     kept = [r for r in old if key(r) not in new]
     if kept:
         print(f"kept {len(kept)} cells of the earlier {out / 'reconstruct.json'}")
+    return 0
+
+
+def key(r: dict) -> tuple:
+    return (r["phantom"], r["n"], r["method"])
+
+
+def write(out: Path, old: list, rows: list) -> None:
+    """reconstruct.json and .md: the cells measured now, plus the old cells not re-measured."""
+    new = {key(r) for r in rows}
     order = {m: i for i, m in enumerate(METHODS)}
-    rows = sorted(kept + rows, key=lambda r: (r["n"], r["phantom"], order.get(r["method"], 99)))
+    rows = sorted([r for r in old if key(r) not in new] + rows,
+                  key=lambda r: (r["n"], r["phantom"], order.get(r["method"], 99)))
     out.mkdir(parents=True, exist_ok=True)
     machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()}
-    (out / "reconstruct.json").write_text(json.dumps({"machine": machine, "rows": rows},
-                                                     indent=2))
+    tmp = out / "reconstruct.json.tmp"
+    tmp.write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
+    tmp.replace(out / "reconstruct.json")
     (out / "reconstruct.md").write_text(to_markdown(rows, machine))
-    return 0
 
 
 def to_markdown(rows: list, machine: dict) -> str:

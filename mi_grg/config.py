@@ -56,6 +56,10 @@ class TrainConfig:
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field
     k: int = 6                     # neighbours in the kNN graph
     graph_s: float = 0.0           # weight scale s in exp(-d^2 / s); 0: automatic
+    rebuild_keeps_field: bool = False  # after densification, rescale the densities so that
+                                   # the rebuilt graph alone does not change the field:
+                                   # each kernel keeps its source's multiplier 1 + sum w
+                                   # (why: mi_grg.train.carry_density_scale)
     lambda_lap: float = 8e-4       # graph Laplacian weight (raw sum x 50k / N, see train)
     # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
     # eval_every) is the paper's for 30k iterations and is scaled to the run's length

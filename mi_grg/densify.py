@@ -39,6 +39,10 @@ term added to the densification gradient. Every ``interval`` iterations in the w
    its density halves, as in R2-Gaussian where the tensor is edited in place); clone
    copies and split children start from zero moments. Accumulators reset to zero.
 
+``info["source"]`` (mi.UInt32 [n_after]) is the row each result row came from (itself, the
+cloned original, or the split parent); the trainer uses it to carry the graph field's
+density multiplier over a graph rebuild.
+
 Row order of the result: surviving originals in their order, then clone copies, then the
 first children of all split parents, then the second children (R2-Gaussian's order).
 Physical <-> raw conversions go through ``Gaussians.from_raw`` / ``to_raw`` only; rows that
@@ -348,13 +352,14 @@ class PGADensifier:
         for v in out.values():
             dr.enable_grad(v)
         dr.eval(out)
+        source = dr.gather(mi.UInt32, src, kept)
         if optimizer is not None:
-            optimizer.remap(dr.gather(mi.UInt32, src, kept), dr.gather(mi.Bool, is_orig, kept))
+            optimizer.remap(source, dr.gather(mi.Bool, is_orig, kept))
         n_after = dr.width(kept)
         self.reset(n_after)
         info = {"densified": True, "iteration": int(iteration), "n_before": n,
                 "n_candidates": n_cand, "capped": capped, "n_clone": nc, "n_split": ns,
-                "n_pruned": m - n_after - ns, "n_after": n_after}
+                "n_pruned": m - n_after - ns, "n_after": n_after, "source": source}
         return out, info
 
     @staticmethod

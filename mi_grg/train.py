@@ -90,6 +90,29 @@ def _scaled(cfg: TrainConfig, iterations: int) -> dict:
             "eval_every": max(50, int(cfg.eval_every * max(f, 0.25)))}
 
 
+def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
+    """Densities x old_scale[source] / new_scale, after a densification and graph rebuild.
+
+    The graph field renders kernel j with density rho_j (1 + sum_i w_ij), and the sum
+    changes whenever the graph is rebuilt: a clone and its copy sit at distance 0 (w = 1 to
+    each other), so the pair would render about 1 / (1 + sum w) ~ 25 % more mass than its
+    parent although the clone halved the density to conserve it. Rescaled, every kernel
+    renders with its source row's old multiplier, so densification changes the field
+    exactly as R2-Gaussian's rules change the plain field (``rebuild_keeps_field``).
+
+    raw: densified raw parameters [N_after]; old_scale: mi.Float [N_before] (multiplier of
+    the old graph); new_scale: mi.Float [N_after] (of the rebuilt graph, >= 1);
+    source: mi.UInt32 [N_after] (``PGADensifier`` info["source"]). Returns a new raw dict
+    (only raw_densities changes), gradients enabled."""
+    g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
+    ratio = dr.gather(mi.Float, old_scale, source) / dr.maximum(new_scale, 1.0)
+    out = dict(raw)
+    out["raw_densities"] = g.replace(densities=g.densities * ratio).to_raw()["raw_densities"]
+    dr.enable_grad(out["raw_densities"])
+    dr.eval(out["raw_densities"])
+    return out
+
+
 @dataclass
 class TrainState:
     """Everything a checkpoint holds (explicit, so that resuming is exact)."""
@@ -432,9 +455,13 @@ class Trainer:
                 if cfg.use_pga and self.graph is not None:
                     term = mean_abs_density_difference(self.graph,
                                                        dr.detach(Gaussians.from_raw(raw).densities))
+                old_scale = self._density_scale()
                 raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
                                                 bbox=geo.bbox())
                 self._rebuild_graph(raw["positions"])
+                if info["densified"] and old_scale is not None and cfg.rebuild_keeps_field:
+                    raw = carry_density_scale(raw, old_scale, self._density_scale(),
+                                              info["source"])
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}

@@ -299,3 +299,29 @@ def test_loss_plot_smooths_the_alternating_tv_term(tmp_path, monkeypatch):
     assert raw.max() - raw.min() == 2.0
     plot_log(tmp_path / "b.png", log[:1])
     assert len(curves) == 3 and (tmp_path / "b.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_rebuild_keeps_field_carries_the_multiplier(tiny_case, monkeypatch, keep):
+    """rebuild_keeps_field: after each densification (iteration 25 of 60) the trainer rescales
+    the densities so that rho_new x scale_new = rho_densified x scale_old[source]; off, the
+    densities are left as densified."""
+    import mitsuba as mi
+    import mi_grg.train as train
+    calls = []
+    real = train.carry_density_scale
+
+    def spy(raw, old_scale, new_scale, source):
+        out = real(raw, old_scale, new_scale, source)
+        calls.append((np.asarray(Gaussians.from_raw(raw).densities)
+                      * np.asarray(dr.gather(mi.Float, old_scale, source)),
+                      np.asarray(Gaussians.from_raw(out).densities) * np.asarray(new_scale)))
+        return out
+
+    monkeypatch.setattr(train, "carry_density_scale", spy)
+    t = Trainer(tiny_case, make_config("gr", iterations=60, rebuild_keeps_field=keep, **TINY),
+                progress=False)
+    t.run()
+    assert len(calls) == (1 if keep else 0)
+    for want, got in calls:
+        np.testing.assert_allclose(got, want, rtol=1e-5)
