@@ -31,6 +31,13 @@ PRESETS = {
 }
 
 
+# Fields added after runs had been made, with the value that reproduces the behaviour
+# from before they existed: a finished run whose recorded config lacks one of them was
+# made with this value (mi_grg.experiments.stale_keys). A field added with a default
+# that CHANGES behaviour must not be listed, so that such runs count as stale.
+ADDED_LATER = {"rebuild_keeps_field": False}
+
+
 @dataclass
 class TrainConfig:
     """Every hyperparameter of GR-Gaussian / R2-Gaussian training."""

@@ -551,7 +551,7 @@ def stale_options(run_dir: Path) -> list:
 
 def stale_keys(m: dict) -> list:
     """``stale_options`` for a run's metrics.json already read into ``m``."""
-    from .config import PRESETS, TrainConfig, make_config
+    from .config import ADDED_LATER, PRESETS, TrainConfig, make_config
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return []
@@ -561,6 +561,7 @@ def stale_keys(m: dict) -> list:
         now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
+    used = {**{k: v for k, v in ADDED_LATER.items() if k not in used}, **used}
     return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
 
 

@@ -58,20 +58,26 @@ def register_method(name: str, func) -> None:
     METHODS[name] = func
 
 
-def code_version() -> str:
+# What "+dirty" looks at: the code and configs that produce a result, not the result files
+# (docs/bench/*.json, docs/results.md) that a benchmark rewrites while it runs.
+CODE_PATHS = ("mi_grg", "plugins", "scenes", "bench", "experiments", "pyproject.toml")
+
+
+def code_version(root: Path | None = None) -> str:
     """mi_grg's version and, when it runs from a git checkout, the commit ("0.1.0+g1a2b3c4",
-    "+dirty" with uncommitted changes to tracked files): which code produced a result."""
+    "+dirty" with uncommitted changes to tracked files under CODE_PATHS): which code
+    produced a result. root: the checkout (default: the one holding this package)."""
     import subprocess
     from . import __version__
-    here = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parent.parent if root is None else Path(root)
     try:
-        git = ["git", "-C", str(here)]
+        git = ["git", "-C", str(root)]
         commit = subprocess.run(git + ["rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, timeout=10)
         if commit.returncode != 0:
             return __version__
-        dirty = subprocess.run(git + ["status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(git + ["status", "--porcelain", "--untracked-files=no", "--",
+                                      *CODE_PATHS], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):   # no git, or a hung one
         return __version__
     tag = f"{__version__}+g{commit.stdout.strip()}"

@@ -166,6 +166,16 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     m["method_info"]["config"]["tv_every"] += 1       # as if run under another default
     (run_dir / "metrics.json").write_text(json.dumps(m))
     assert stale_options(run_dir) == ["tv_every"]
+    # a field added later with its old behaviour as default: absent means that value ...
+    del m["method_info"]["config"]["rebuild_keeps_field"]
+    (run_dir / "metrics.json").write_text(json.dumps(m))
+    assert stale_options(run_dir) == ["tv_every"]
+    # ... any other absent field is stale (the run cannot say what it used)
+    del m["method_info"]["config"]["keep_state"]
+    (run_dir / "metrics.json").write_text(json.dumps(m))
+    assert stale_options(run_dir) == ["keep_state", "tv_every"]
+    m["method_info"]["config"]["keep_state"] = "latest"
+    (run_dir / "metrics.json").write_text(json.dumps(m))
     plan = run_experiment("table1", suite, out, dry_run=True)
     assert plan["todo"] == 1 and plan["runs"][0]["stale"] == ["tv_every"]
     md = write_report(out, tmp_path / "r.md").read_text()     # the report says so

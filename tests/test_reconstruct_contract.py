@@ -6,7 +6,7 @@ import pytest
 
 from mi_grg.case import Case
 from mi_grg import __version__
-from mi_grg.methods import code_version, get_method, reconstruct, register_method
+from mi_grg.methods import CODE_PATHS, code_version, get_method, reconstruct, register_method
 
 
 def _case(small_cone_geometry, rng):
@@ -46,10 +46,34 @@ def test_code_version_names_the_commit():
     if head.returncode != 0:
         assert code_version() == __version__   # installed outside a checkout
         return
-    dirty = subprocess.run(["git", "-C", str(pkg), "status", "--porcelain",
-                            "--untracked-files=no"], capture_output=True, text=True).stdout
+    dirty = subprocess.run(["git", "-C", str(pkg.parent), "status", "--porcelain",
+                            "--untracked-files=no", "--", *CODE_PATHS],
+                           capture_output=True, text=True).stdout
     want = f"{__version__}+g{head.stdout.strip()}" + ("+dirty" if dirty.strip() else "")
     assert code_version() == want
+
+
+def test_code_version_dirty_only_for_code(tmp_path):
+    """A benchmark rewriting its result files (docs/) leaves the version clean; an edit under
+    mi_grg/ marks it "+dirty" (a scratch git repository)."""
+    import shutil
+    import subprocess
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    (tmp_path / "mi_grg").mkdir()
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "mi_grg" / "a.py").write_text("x = 1\n")
+    (tmp_path / "docs" / "r.md").write_text("old\n")
+    for cmd in (["init", "-q"], ["add", "-A"], ["commit", "-qm", "c"]):
+        subprocess.run(git + cmd, check=True, capture_output=True)
+    head = subprocess.run(git + ["rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    assert code_version(tmp_path) == f"{__version__}+g{head}"
+    (tmp_path / "docs" / "r.md").write_text("new result\n")
+    assert code_version(tmp_path) == f"{__version__}+g{head}"
+    (tmp_path / "mi_grg" / "a.py").write_text("x = 2\n")
+    assert code_version(tmp_path) == f"{__version__}+g{head}+dirty"
 
 
 def test_code_version_without_git(monkeypatch):

@@ -325,3 +325,32 @@ def test_rebuild_keeps_field_carries_the_multiplier(tiny_case, monkeypatch, keep
     assert len(calls) == (1 if keep else 0)
     for want, got in calls:
         np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_graph_field_without_rebuilds_trains_like_the_plain_field(tiny_case):
+    """Between rebuilds the multiplier m = 1 + sum w is constant, and for the small densities
+    of training softplus(raw) ~ exp(raw): rho m = softplus(raw + log m), a constant shift of
+    the raw density that Adam does not see. So 40 iterations without densification (window
+    ends at 20, interval 25) and without the Laplacian train the same field whether it is
+    graph-augmented or plain: the projections differ by a small fraction of how far training
+    moved them (measured: 0.3 % of the change). This checks a property of the method (the
+    graph field is a reparametrisation between rebuilds; docs/benchmarks.md) more than the
+    code: Adam's per-parameter normalisation would hide many scale errors in gradients."""
+    from mi_grg.graph import build_graph, graph_density_scale
+    common = dict(n_points=400, holdout_every=0, lambda_lap=0.0, use_pga=False, iterations=40)
+    geo = tiny_case.geometry
+    proj = {}
+    for field in (True, False):
+        t = Trainer(tiny_case, make_config("gr", use_graph_field=field, **common), progress=False)
+        g0 = Gaussians.from_raw(t.state.raw)
+        before = project(g0, geo, density_scale=graph_density_scale(build_graph(
+            g0.positions, k=6)) if field else None)
+        t.run()
+        assert t.densifier.size is None or t.state.log[-1]["n_gaussians"] == 400
+        proj[field] = before, project(Gaussians.from_raw(t.state.raw), geo,
+                                      density_scale=t.final_density_scale)
+    np.testing.assert_allclose(proj[True][0], proj[False][0], rtol=1e-4, atol=1e-5)
+    moved = np.abs(proj[False][1] - proj[False][0]).mean()
+    apart = np.abs(proj[True][1] - proj[False][1]).mean()
+    assert moved > 0.05 * np.abs(proj[False][0]).mean()      # training did move the field
+    assert apart < 0.02 * moved, (apart, moved)
