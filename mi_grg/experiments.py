@@ -561,7 +561,7 @@ def stale_keys(m: dict) -> list:
         now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
-    used = {**{k: v for k, v in ADDED_LATER.items() if k not in used}, **used}
+    used = {**ADDED_LATER, **used}      # recorded values win
     return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
 
 

@@ -316,6 +316,7 @@ class Trainer:
         if self.state.stopper:
             self.stopper.load_state(self.state.stopper)
         self.graph = None
+        self._scale = None             # graph_density_scale(self.graph), set with the graph
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
 
@@ -348,19 +349,22 @@ class Trainer:
     def _rebuild_graph(self, positions):
         """Graph of ``positions`` (the state remembers them, so a resumed run rebuilds the
         very same graph rather than one of later positions)."""
-        from .graph import build_graph
+        from .graph import build_graph, graph_density_scale
+        self._scale = None
         if not self.uses_graph:
             self.graph = None
             return
         p = mi.Point3f(dr.detach(positions))
         self.graph = build_graph(p, k=self.cfg.k, s=self.cfg.graph_s or None)
         self.state.graph_positions = np.stack([np.asarray(c) for c in p], -1)
+        if self.cfg.use_graph_field:
+            # constant until the next rebuild: computed once here, not every iteration
+            self._scale = graph_density_scale(self.graph)
+            dr.eval(self._scale)
 
     def _density_scale(self):
-        if self.graph is None or not self.cfg.use_graph_field:
-            return None
-        from .graph import graph_density_scale
-        return graph_density_scale(self.graph)
+        """The graph field's multiplier 1 + sum w of the current graph (None: plain field)."""
+        return self._scale
 
     def _project(self, g, angles, density_scale, means2d=None):
         from .projector import project_dr
@@ -455,11 +459,11 @@ class Trainer:
                 if cfg.use_pga and self.graph is not None:
                     term = mean_abs_density_difference(self.graph,
                                                        dr.detach(Gaussians.from_raw(raw).densities))
-                old_scale = self._density_scale()
+                old_scale = self._density_scale() if cfg.rebuild_keeps_field else None
                 raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
                                                 bbox=geo.bbox())
                 self._rebuild_graph(raw["positions"])
-                if info["densified"] and old_scale is not None and cfg.rebuild_keeps_field:
+                if info["densified"] and old_scale is not None:
                     raw = carry_density_scale(raw, old_scale, self._density_scale(),
                                               info["source"])
             st.iteration, st.raw = it, raw
