@@ -60,6 +60,8 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench"))
     ap.add_argument("--fresh", action="store_true",
                     help="drop the cells of an existing reconstruct.json instead of keeping them")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="rewrite reconstruct.md from reconstruct.json; run nothing")
     ap.add_argument("--one", nargs=3, metavar=("PHANTOM", "N", "METHOD"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
@@ -69,6 +71,12 @@ def main() -> int:
     old = []
     if (out / "reconstruct.json").exists() and not args.fresh:
         old = json.loads((out / "reconstruct.json").read_text())["rows"]
+    if args.markdown_only:
+        if not old:
+            print(f"--markdown-only: no cells in {out / 'reconstruct.json'}", file=sys.stderr)
+            return 2
+        write(out, old, [])
+        return 0
     rows = []
     for n in args.sizes:
         for ph in args.phantoms:
@@ -126,14 +134,18 @@ def to_markdown(rows: list, machine: dict) -> str:
                      f"{its} | {r.get('n_gaussians', '')} | {r.get('date') or '—'} | "
                      f"{r.get('code') or '—'} |")
     # gr against the best classical method and against r2, per case (measured in this run)
-    lines += ["", "| phantom | size | gr - best classical (dB) | gr - r2 (dB) |", "|---|---|---|---|"]
+    lines += ["", "| phantom | size | gr - best classical (dB) | gr - r2 (dB) | gr - r2 (SSIM) |",
+              "|---|---|---|---|---|"]
     cases = sorted({(r["phantom"], r["n"]) for r in rows})
     for ph, n in cases:
-        by = {r["method"]: r["psnr_3d"] for r in rows if (r["phantom"], r["n"]) == (ph, n)}
-        classical = [by[m] for m in ("fdk", "sart", "asd-pocs") if m in by]
+        by = {r["method"]: r for r in rows if (r["phantom"], r["n"]) == (ph, n)}
+        classical = [by[m]["psnr_3d"] for m in ("fdk", "sart", "asd-pocs") if m in by]
         if "gr" in by and classical:
-            d_r2 = f"{by['gr'] - by['r2']:+.2f}" if "r2" in by else "—"
-            lines.append(f"| {ph} | {n}^3 | {by['gr'] - max(classical):+.2f} | {d_r2} |")
+            gr, r2 = by["gr"], by.get("r2")
+            d_r2 = f"{gr['psnr_3d'] - r2['psnr_3d']:+.2f}" if r2 else "—"
+            s_r2 = f"{gr['ssim_3d'] - r2['ssim_3d']:+.3f}" if r2 else "—"
+            lines.append(f"| {ph} | {n}^3 | {gr['psnr_3d'] - max(classical):+.2f} | {d_r2} | "
+                         f"{s_r2} |")
     return "\n".join(lines) + "\n"
 
 

@@ -253,27 +253,38 @@ def _sweep_table(rows, prefix, values, with_time=True) -> tuple[list, list]:
     return header, body
 
 
-def seeds_table(rows) -> tuple[list, list, dict]:
-    """Per case: r2 and gr 3-D PSNR over training seeds (mean +- sample sd) and the paired
-    difference gr - r2 (same seed, same data); a last row pools every pair.
+#: Metrics of the seeds table: key -> (label, decimals, unit).
+SEED_METRICS = {"psnr_3d": ("PSNR", 2, "dB"), "ssim_3d": ("SSIM", 4, "")}
+
+
+def seeds_table(rows, key: str = "psnr_3d") -> tuple[list, list, dict]:
+    """Per case: r2 and gr 3-D PSNR (or SSIM: ``key="ssim_3d"``) over training seeds (mean
+    +- sample sd) and the paired difference gr - r2 (same seed, same data); a last row pools
+    every pair.
 
     Returns (header, body, pooled) with pooled = {"n", "mean", "sd", "se"} of all paired
     differences (se = sd / sqrt(n); empty without pairs)."""
+    if key not in SEED_METRICS:
+        raise ValueError(f"seeds_table: key must be one of {sorted(SEED_METRICS)}, got {key!r}")
+    name, dig, _ = SEED_METRICS[key]
     by = {}
     for r in rows:
         m, _, sd = r["run"].rpartition("_s")
-        v = _value(r, "psnr_3d")
+        v = _value(r, key)
         if m in ("r2", "gr") and sd.isdigit() and v is not None:
             by.setdefault(r["case"], {}).setdefault(int(sd), {})[m] = v
 
     def ms(vals, sign=""):
         if not vals:
             return DASH
-        sd = f" ± {np.std(vals, ddof=1):.2f}" if len(vals) > 1 else ""
-        return f"{np.mean(vals):{sign}.2f}{sd}"
+        sd = f" ± {np.std(vals, ddof=1):.{dig}f}" if len(vals) > 1 else ""
+        return f"{np.mean(vals):{sign}.{dig}f}{sd}"
 
-    header = ["case", "seeds", "r2 PSNR", "gr PSNR", "gr − r2 (paired)", "range of gr − r2",
-              "gr ahead"]
+    def span(d):
+        return f"{min(d):+.{dig}f} .. {max(d):+.{dig}f}" if d else DASH
+
+    header = ["case", "seeds", f"r2 {name}", f"gr {name}", "gr − r2 (paired)",
+              "range of gr − r2", "gr ahead"]
     body, pooled_d = [], []
     for case, _ in _cases(rows):
         seeds = by.get(case, {})
@@ -281,16 +292,14 @@ def seeds_table(rows) -> tuple[list, list, dict]:
         pooled_d += d
         body.append([case, str(len(seeds)), ms([x["r2"] for x in seeds.values() if "r2" in x]),
                      ms([x["gr"] for x in seeds.values() if "gr" in x]),
-                     ms(d, "+"), f"{min(d):+.2f} .. {max(d):+.2f}" if d else DASH,
-                     f"{sum(x > 0 for x in d)} of {len(d)}"])
+                     ms(d, "+"), span(d), f"{sum(x > 0 for x in d)} of {len(d)}"])
     pooled = {}
     if pooled_d:
         n = len(pooled_d)
         sd = float(np.std(pooled_d, ddof=1)) if n > 1 else float("nan")
         pooled = {"n": n, "mean": float(np.mean(pooled_d)), "sd": sd,
                   "se": sd / math.sqrt(n) if n > 1 else float("nan")}
-        body.append([f"all ({n} pairs)", "", "", "", ms(pooled_d, "+"),
-                     f"{min(pooled_d):+.2f} .. {max(pooled_d):+.2f}",
+        body.append([f"all ({n} pairs)", "", "", "", ms(pooled_d, "+"), span(pooled_d),
                      f"{sum(x > 0 for x in pooled_d)} of {n}"])
     return header, body, pooled
 
@@ -760,20 +769,22 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     sd = all_rows.get("seeds")
     md += ["## Training seeds", ""]
     if sd:
-        h, b, pooled = seeds_table(sd)
-        md += ["3-D PSNR (dB) of r2 and gr with different training seeds on the same data "
-               "(the seed draws the initial points, the view order, the TV blocks and the "
+        md += ["3-D PSNR (dB) and SSIM of r2 and gr with different training seeds on the same "
+               "data (the seed draws the initial points, the view order, the TV blocks and the "
                "split positions; the noise in the data is fixed). Mean ± sample standard "
-               "deviation over seeds; \"paired\" = gr − r2 at the same seed.", "",
-               _md_table(h, b), ""]
-        if pooled.get("n", 0) > 1:
-            verdict = ("exceeds" if abs(pooled["mean"]) > 2 * pooled["se"]
-                       else "does not exceed")
-            md += [f"Pooled over the {pooled['n']} pairs: gr − r2 = {pooled['mean']:+.2f} dB, "
-                   f"standard error {pooled['se']:.2f} dB; the mean {verdict} twice its "
-                   "standard error. Pooling treats pairs from different cases as "
-                   "interchangeable; where the per-case differences disagree, read the "
-                   "rows.", ""]
+               "deviation over seeds; \"paired\" = gr − r2 at the same seed.", ""]
+        for key, (name, dig, unit) in SEED_METRICS.items():
+            h, b, pooled = seeds_table(sd, key)
+            md += [f"{name}:", "", _md_table(h, b), ""]
+            if pooled.get("n", 0) > 1:
+                verdict = ("exceeds" if abs(pooled["mean"]) > 2 * pooled["se"]
+                           else "does not exceed")
+                u = f" {unit}" if unit else ""
+                md += [f"Pooled over the {pooled['n']} pairs: gr − r2 = "
+                       f"{pooled['mean']:+.{dig}f}{u} {name}, standard error "
+                       f"{pooled['se']:.{dig}f}{u}; the mean {verdict} twice its standard "
+                       "error. Pooling treats pairs from different cases as interchangeable; "
+                       "where the per-case differences disagree, read the rows.", ""]
     else:
         md += [_absent("seeds", out), ""]
 

@@ -385,10 +385,14 @@ def test_seeds_table_pairs_runs_by_seed(tmp_path):
             "b": {0: (25.0, 25.5), 1: (25.1, None)}}          # seed 1 of b: gr missing
     for case, per in vals.items():
         for sd, (r2, gr) in per.items():
-            _fake_run(out, "seeds", case, f"r2_s{sd}", "HO", "r2", psnr_3d=r2)
+            # SSIM = PSNR / 100 - 0.2, so its paired differences are the PSNR ones / 100
+            _fake_run(out, "seeds", case, f"r2_s{sd}", "HO", "r2", psnr_3d=r2,
+                      ssim_3d=r2 / 100 - 0.2)
             if gr is not None:
-                _fake_run(out, "seeds", case, f"gr_s{sd}", "HO", "gr", psnr_3d=gr)
-    h, body, pooled = seeds_table(load_runs(out)["seeds"])
+                _fake_run(out, "seeds", case, f"gr_s{sd}", "HO", "gr", psnr_3d=gr,
+                          ssim_3d=gr / 100 - 0.2)
+    rows_in = load_runs(out)["seeds"]
+    h, body, pooled = seeds_table(rows_in)
     rows = {r[0]: dict(zip(h, r)) for r in body}
     d = np.array([0.3, -0.1, 0.5, 0.5])
     assert rows["a"]["gr − r2 (paired)"] == f"{np.mean(d[:3]):+.2f} ± {np.std(d[:3], ddof=1):.2f}"
@@ -396,7 +400,18 @@ def test_seeds_table_pairs_runs_by_seed(tmp_path):
     assert rows["b"]["r2 PSNR"].startswith("25.05 ± ") and rows["b"]["gr PSNR"] == "25.50"
     assert pooled["n"] == 4 and abs(pooled["mean"] - d.mean()) < 1e-12
     assert abs(pooled["se"] - np.std(d, ddof=1) / 2) < 1e-12
+
+    hs, body_s, pooled_s = seeds_table(rows_in, "ssim_3d")
+    rows_s = {r[0]: dict(zip(hs, r)) for r in body_s}
+    assert "gr SSIM" in hs and rows_s["b"]["gr SSIM"] == f"{0.255 - 0.2:.4f}"
+    assert rows_s["a"]["range of gr − r2"] == "-0.0010 .. +0.0050"
+    assert abs(pooled_s["mean"] - d.mean() / 100) < 1e-9
+    assert abs(pooled_s["se"] - np.std(d / 100, ddof=1) / 2) < 1e-9
+    with pytest.raises(ValueError, match="key must be one of"):
+        seeds_table(rows_in, "psnr")
+
     md = write_report(out, tmp_path / "r.md").read_text()
-    assert "## Training seeds" in md and "all (4 pairs)" in md
+    assert "## Training seeds" in md and md.count("all (4 pairs)") == 2
     verdict = "exceeds" if d.mean() > 2 * np.std(d, ddof=1) / 2 else "does not exceed"
     assert f"the mean {verdict} twice its standard error" in md
+    assert f"gr − r2 = {d.mean() / 100:+.4f} SSIM" in md
