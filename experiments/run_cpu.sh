@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every run behind docs/results.md, then the report: the default CPU suite (about 50 min on
 # 2 cores), Table 2 on shepp and shell, Table 3 and the views sweep on shell (about 45 min
-# more), training seeds 1 and 2 of r2 and gr on shepp, needles and shell (29 min).
+# more), training seeds 1 and 2 of r2 and gr on shepp, needles, shell, shells and bone (59 min).
 # Finished runs are skipped, so a rerun only does what is missing or stale.
 #   bash experiments/run_cpu.sh [OUT] [extra experiment options, e.g. --dry-run]
 set -euo pipefail
@@ -14,7 +14,7 @@ MI_GRG=${MI_GRG:-.venv/bin/mi-grg}
 "$MI_GRG" experiment table2 --suite "$SUITE" --out "$OUT" --cases shepp,shell "$@"
 "$MI_GRG" experiment table3 --suite "$SUITE" --out "$OUT" --cases shell "$@"
 "$MI_GRG" experiment views  --suite "$SUITE" --out "$OUT" --cases shell "$@"
-"$MI_GRG" experiment seeds  --suite "$SUITE" --out "$OUT" --cases shepp,needles,shell "$@"
+"$MI_GRG" experiment seeds  --suite "$SUITE" --out "$OUT" --cases shepp,needles,shell,shells,bone "$@"
 case " $* " in
   *" --dry-run "*) ;;
   *) "$MI_GRG" report --out "$OUT" --report docs/results.md ;;
