@@ -316,7 +316,9 @@ class Trainer:
         if self.state.stopper:
             self.stopper.load_state(self.state.stopper)
         self.graph = None
-        self._scale = None             # graph_density_scale(self.graph), set with the graph
+        # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
+        # set with the graph: constant until the next rebuild.
+        self._density_scale = None
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
 
@@ -350,7 +352,7 @@ class Trainer:
         """Graph of ``positions`` (the state remembers them, so a resumed run rebuilds the
         very same graph rather than one of later positions)."""
         from .graph import build_graph, graph_density_scale
-        self._scale = None
+        self._density_scale = None
         if not self.uses_graph:
             self.graph = None
             return
@@ -359,12 +361,8 @@ class Trainer:
         self.state.graph_positions = np.stack([np.asarray(c) for c in p], -1)
         if self.cfg.use_graph_field:
             # constant until the next rebuild: computed once here, not every iteration
-            self._scale = graph_density_scale(self.graph)
-            dr.eval(self._scale)
-
-    def _density_scale(self):
-        """The graph field's multiplier 1 + sum w of the current graph (None: plain field)."""
-        return self._scale
+            self._density_scale = graph_density_scale(self.graph)
+            dr.eval(self._density_scale)
 
     def _project(self, g, angles, density_scale, means2d=None):
         from .projector import project_dr
@@ -378,7 +376,7 @@ class Trainer:
         with dr.suspend_grad():
             g = Gaussians.from_raw(raw)
             img = self._project(g, self.case.geometry.angles[self.held_idx],
-                                self._density_scale())
+                                self._density_scale)
             pred = np.asarray(img.numpy())
         return float(psnr_proj(pred, self.case.train[self.held_idx]))
 
@@ -427,7 +425,7 @@ class Trainer:
             it = st.iteration + 1
             view = int(self.rng.choice(self.fit_idx))
             g = Gaussians.from_raw(raw)
-            ds = self._density_scale()
+            ds = self._density_scale
             n = len(g)
             means2d = dr.zeros(mi.Vector2f, n)
             dr.enable_grad(means2d)
@@ -459,12 +457,12 @@ class Trainer:
                 if cfg.use_pga and self.graph is not None:
                     term = mean_abs_density_difference(self.graph,
                                                        dr.detach(Gaussians.from_raw(raw).densities))
-                old_scale = self._density_scale() if cfg.rebuild_keeps_field else None
+                old_scale = self._density_scale if cfg.rebuild_keeps_field else None
                 raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
                                                 bbox=geo.bbox())
                 self._rebuild_graph(raw["positions"])
                 if info["densified"] and old_scale is not None:
-                    raw = carry_density_scale(raw, old_scale, self._density_scale(),
+                    raw = carry_density_scale(raw, old_scale, self._density_scale,
                                               info["source"])
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - t_start, 3),
@@ -477,7 +475,7 @@ class Trainer:
                 # Research logging: not counted in the training time.
                 t3 = time.perf_counter()
                 from .metrics import psnr_3d
-                row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale()),
+                row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
                                                self.case.vol_gt))
                 t_start += time.perf_counter() - t3
             if is_eval:
@@ -491,7 +489,7 @@ class Trainer:
                     verdict = self.stopper.update(it, watched)
                     if self.stopper.kept_iteration == it:
                         st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
-                        ds = self._density_scale()
+                        ds = self._density_scale
                         st.kept_density_scale = None if ds is None else mi.Float(ds)
                     elif verdict == "stop":
                         st.stopped_by = self.stopper.reason
@@ -514,7 +512,7 @@ class Trainer:
         if st.kept_raw is not None:
             final, self.final_density_scale = st.kept_raw, st.kept_density_scale
         else:
-            final, self.final_density_scale = st.raw, self._density_scale()
+            final, self.final_density_scale = st.raw, self._density_scale
         if cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by:
             final = self._refit(final, cfg.refit_iterations)
         st.raw = final
