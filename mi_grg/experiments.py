@@ -8,7 +8,7 @@ resumable, parallel runner.
 NAME is one of ``EXPERIMENTS`` or "all" (the experiments the suite's ``experiments`` block
 lists, or every one when it lists none):
     table1      every method x every case (3-D PSNR / SSIM, time)
-    table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + graph field / Laplacian, gr
+    table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + Laplacian, r2 + graph field & Laplacian, gr
     table3      sweeps of k (kNN graph) and sigma_d (De-Init filter)
     iterations  held-out-view PSNR and 3-D PSNR against iteration, early stop marked
     speed       3-D PSNR against wall-clock time for every method
@@ -324,6 +324,8 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
             variants = [("r2", "r2", {}, "R2-Gaussian (baseline)"),
                         ("r2+deinit", "r2", {"sigma_d": d.sigma_d}, "+ De-Init"),
                         ("r2+pga", "r2", {"use_pga": True}, "+ PGA"),
+                        # the Laplacian alone: with r2+graph it separates the field's effect
+                        ("r2+lap", "r2", {"lambda_lap": d.lambda_lap}, "+ Laplacian"),
                         ("r2+graph", "r2", {"use_graph_field": True,
                                             "lambda_lap": d.lambda_lap},
                          "+ graph field & Laplacian"),

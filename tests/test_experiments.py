@@ -415,3 +415,23 @@ def test_seeds_table_pairs_runs_by_seed(tmp_path):
     verdict = "exceeds" if d.mean() > 2 * np.std(d, ddof=1) / 2 else "does not exceed"
     assert f"the mean {verdict} twice its standard error" in md
     assert f"gr − r2 = {d.mean() / 100:+.4f} SSIM" in md
+
+
+def test_table2_rows_each_add_one_component_to_r2(tmp_path):
+    """Each ablation row is r2 plus exactly the options of its component, at gr's values."""
+    raw = json.loads(_suite(tmp_path).read_text())
+    raw["experiments"] = {"table2": {"cases": ["shepp"]}}
+    path = tmp_path / "t2.json"
+    path.write_text(json.dumps(raw))
+    runs = {s.run: s for s in plan_experiment("table2", load_suite(path))}
+    assert list(runs) == ["r2", "r2+deinit", "r2+pga", "r2+lap", "r2+graph", "gr"]
+    from mi_grg.config import make_config
+    gr = make_config("gr")
+    base = runs["r2"].options
+    added = {"r2+deinit": {"sigma_d": gr.sigma_d}, "r2+pga": {"use_pga": True},
+             "r2+lap": {"lambda_lap": gr.lambda_lap},
+             "r2+graph": {"use_graph_field": True, "lambda_lap": gr.lambda_lap}}
+    for run, opts in added.items():
+        assert runs[run].method == "r2"
+        assert runs[run].options == {**base, **opts}, run
+    assert runs["gr"].method == "gr" and gr.lambda_lap > 0 and gr.sigma_d > 0
