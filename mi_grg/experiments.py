@@ -8,7 +8,8 @@ resumable, parallel runner.
 NAME is one of ``EXPERIMENTS`` or "all" (the experiments the suite's ``experiments`` block
 lists, or every one when it lists none):
     table1      every method x every case (3-D PSNR / SSIM, time)
-    table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + Laplacian, r2 + graph field & Laplacian, gr
+    table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + Laplacian, r2 + graph field &
+                Laplacian, gr
     table3      sweeps of k (kNN graph) and sigma_d (De-Init filter)
     iterations  held-out-view PSNR and 3-D PSNR against iteration, early stop marked
     speed       3-D PSNR against wall-clock time for every method

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import mi_grg
+from mi_grg.config import make_config
 from mi_grg.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
                                 plan_experiment, run_experiment, stale_options)
 from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
@@ -425,7 +426,6 @@ def test_table2_rows_each_add_one_component_to_r2(tmp_path):
     path.write_text(json.dumps(raw))
     runs = {s.run: s for s in plan_experiment("table2", load_suite(path))}
     assert list(runs) == ["r2", "r2+deinit", "r2+pga", "r2+lap", "r2+graph", "gr"]
-    from mi_grg.config import make_config
     gr = make_config("gr")
     base = runs["r2"].options
     added = {"r2+deinit": {"sigma_d": gr.sigma_d}, "r2+pga": {"use_pga": True},
