@@ -85,12 +85,13 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
     lifted = int(np.sum(seen & (pos <= cfg.densify_grad_threshold)
                         & (pos + pga > cfg.densify_grad_threshold)))
     tiny = 1e-30
+    lap_ratio = lap_abs / np.maximum(data_abs, tiny)
     return {"case": case_dir.name, "n_gaussians": n, "edges": graph.num_edges,
             "views": len(views), "rho_median": float(np.median(np.asarray(rho))),
             "data_grad_median": float(np.median(data_abs)),
             "lap_grad_median": float(np.median(lap_abs)),
-            "lap_ratio_median": float(np.median(lap_abs / np.maximum(data_abs, tiny))),
-            "lap_ratio_p90": float(np.percentile(lap_abs / np.maximum(data_abs, tiny), 90)),
+            "lap_ratio_median": float(np.median(lap_ratio)),
+            "lap_ratio_p90": float(np.percentile(lap_ratio, 90)),
             "pos_grad_median": float(np.median(pos[seen])),
             "pga_term_median": float(np.median(pga[seen])),
             "pga_ratio_median": float(np.median(pga[seen] / np.maximum(pos[seen], tiny))),

@@ -297,10 +297,24 @@ def _log3d_options(ecfg: dict) -> dict:
     return {}
 
 
+def table2_variants() -> list:
+    """Table 2's rows in order: (run, method, options, label); each ablation row is r2 plus
+    one component at gr's default."""
+    from .config import TrainConfig
+    d = TrainConfig()
+    return [("r2", "r2", {}, "R2-Gaussian (baseline)"),
+            ("r2+deinit", "r2", {"sigma_d": d.sigma_d}, "+ De-Init"),
+            ("r2+pga", "r2", {"use_pga": True}, "+ PGA"),
+            # the Laplacian alone: with r2+graph it separates the field's effect
+            ("r2+lap", "r2", {"lambda_lap": d.lambda_lap}, "+ Laplacian"),
+            ("r2+graph", "r2", {"use_graph_field": True, "lambda_lap": d.lambda_lap},
+             "+ graph field & Laplacian"),
+            ("gr", "gr", {}, "GR-Gaussian (all)")]
+
+
 def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
     """The runs of experiment ``name`` on ``suite`` (optionally restricted to ``methods``
     (base method names) and ``cases`` (case names))."""
-    from .config import TrainConfig
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {name!r}; choose one of {list(EXPERIMENTS)} "
                          f"or 'all'")
@@ -309,7 +323,6 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
     names = list(cases) if cases else (ecfg.get("cases") or [c.name for c in suite.cases])
     case_list = [suite.case(n) for n in names]
     want = set(methods) if methods else None
-    d = TrainConfig()
     specs = []
 
     def add(case, run, method, options, label=""):
@@ -322,16 +335,7 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
             for m in ecfg.get("methods") or ALL_METHODS:
                 add(case, m, m, _opts(suite, m))
         elif name == "table2":
-            variants = [("r2", "r2", {}, "R2-Gaussian (baseline)"),
-                        ("r2+deinit", "r2", {"sigma_d": d.sigma_d}, "+ De-Init"),
-                        ("r2+pga", "r2", {"use_pga": True}, "+ PGA"),
-                        # the Laplacian alone: with r2+graph it separates the field's effect
-                        ("r2+lap", "r2", {"lambda_lap": d.lambda_lap}, "+ Laplacian"),
-                        ("r2+graph", "r2", {"use_graph_field": True,
-                                            "lambda_lap": d.lambda_lap},
-                         "+ graph field & Laplacian"),
-                        ("gr", "gr", {}, "GR-Gaussian (all)")]
-            for run, m, o, label in variants:
+            for run, m, o, label in table2_variants():
                 add(case, run, m, _opts(suite, m, **o), label)
         elif name == "table3":
             for k in ecfg.get("k") or [4, 5, 6, 7, 8]:

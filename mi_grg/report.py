@@ -693,7 +693,8 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     t2 = all_rows.get("table2")
     md += ["## Table 2: ablation", ""]
     if t2:
-        h, b = _runs_summary(t2, ["r2", "r2+deinit", "r2+pga", "r2+lap", "r2+graph", "gr"])
+        from .experiments import table2_variants
+        h, b = _runs_summary(t2, [run for run, *_ in table2_variants()])
         md += [_md_table(h, b), ""]
     else:
         md += [_absent("table2", out), ""]
