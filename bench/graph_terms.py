@@ -38,7 +38,7 @@ from mi_grg.dataset import load_case
 from mi_grg.gaussians import Gaussians
 from mi_grg.graph import (build_graph, graph_density_scale, laplacian_loss,
                           mean_abs_density_difference)
-from mi_grg.losses import dssim, l1
+from mi_grg.losses import projection_loss
 from mi_grg.projector import project_dr
 from mi_grg.train import REFERENCE_N
 
@@ -69,7 +69,7 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
                          density_scale=m, means2d=means2d)
         target = mi.TensorXf(np.ascontiguousarray(case.train[view], np.float32))
         pred = mi.TensorXf(img.array, (nv, nu))
-        dr.backward(l1(pred, target) + cfg.lambda_ssim * dssim(pred, target))
+        dr.backward(projection_loss(pred, target, cfg.lambda_ssim))
         data_abs += np.abs(np.asarray(dr.grad(rho)))
         g2 = dr.grad(means2d)
         gn = np.hypot(np.asarray(g2.x) * ndc[0], np.asarray(g2.y) * ndc[1])

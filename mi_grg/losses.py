@@ -154,6 +154,15 @@ def dssim(pred, target, window_size: int = WINDOW_SIZE, sigma: float = WINDOW_SI
     return 1.0 - ssim(pred, target, window_size, sigma)
 
 
+def projection_loss(pred, target, lambda_ssim: float):
+    """The data term of training, the paper's L1 + lambda_ssim D-SSIM; mi.Float width 1.
+    The D-SSIM blur is skipped when lambda_ssim is 0."""
+    loss = l1(pred, target)
+    if lambda_ssim > 0:
+        loss = loss + lambda_ssim * dssim(pred, target)
+    return loss
+
+
 def tv_3d(vol, reduction: str = "mean") -> "mi.Float":
     """R2-Gaussian's 3-D total variation of a volume [x, y, z] (mi.TensorXf).
 

@@ -401,7 +401,7 @@ class Trainer:
         from tqdm import tqdm
 
         from .graph import laplacian_loss, mean_abs_density_difference
-        from .losses import dssim, l1, tv_3d
+        from .losses import projection_loss, tv_3d
         cfg, geo, st = self.cfg, self.case.geometry, self.state
         raw = {k: dr.detach(v) for k, v in st.raw.items()}
         for v in raw.values():
@@ -432,9 +432,7 @@ class Trainer:
             img = self._project(g, geo.angles[view:view + 1], ds, means2d)
             target = self.targets[view]
             pred = mi.TensorXf(img.array, (nv, nu))
-            loss = l1(pred, target)
-            if cfg.lambda_ssim > 0:
-                loss = loss + cfg.lambda_ssim * dssim(pred, target)
+            loss = projection_loss(pred, target, cfg.lambda_ssim)
             if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
                 start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
                 from .voxelizer import voxelize_dr
@@ -538,7 +536,7 @@ class Trainer:
 
     def _refit(self, raw, n_iter: int):
         """Brief refit on all views (held-out ones included) after early stopping."""
-        from .losses import dssim, l1
+        from .losses import projection_loss
         geo, cfg = self.case.geometry, self.cfg
         nv, nu = geo.nDetector
         raw = {k: dr.detach(v) for k, v in raw.items()}
@@ -549,7 +547,7 @@ class Trainer:
             g = Gaussians.from_raw(raw)
             img = self._project(g, geo.angles[view:view + 1], self.final_density_scale)
             pred = mi.TensorXf(img.array, (nv, nu))
-            loss = l1(pred, self.targets[view]) + cfg.lambda_ssim * dssim(pred, self.targets[view])
+            loss = projection_loss(pred, self.targets[view], cfg.lambda_ssim)
             dr.backward(loss)
             raw = self.optimizer.step(raw)
         return raw

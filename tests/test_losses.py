@@ -99,6 +99,17 @@ def test_ssim_value_matches_direct_windowed_sum(variant, rng, shape):
     assert float(losses.dssim(tensor(a), tensor(a))[0]) == pytest.approx(0.0, abs=1e-6)
 
 
+def test_projection_loss_is_l1_plus_weighted_dssim(variant, rng):
+    a = rng.random((1, 12, 15)).astype(np.float32)
+    b = np.clip(a + 0.2 * rng.normal(size=a.shape), 0, 1).astype(np.float32)
+    l1_ref = float(np.mean(np.abs(a - b)))
+    d_ref = 1 - np_ssim(a, b)
+    got = float(losses.projection_loss(tensor(a), tensor(b), 0.25)[0])
+    assert got == pytest.approx(l1_ref + 0.25 * d_ref, abs=2e-6)
+    assert float(losses.projection_loss(tensor(a), tensor(b), 0.0)[0]) == pytest.approx(
+        l1_ref, abs=1e-7)
+
+
 def test_ssim_agrees_with_the_metric(variant, rng):
     """Same window/padding/constants as mi_grg.metrics' SSIM (the evaluation metric)."""
     metrics = pytest.importorskip("mi_grg.metrics")
