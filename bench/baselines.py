@@ -1,7 +1,7 @@
 """Benchmark of the classical baselines (FDK, SART, ASD-POCS) against RTK's CPU filters.
 
-Case: Shepp-Logan (mi_grg.phantoms), R2-Gaussian's synthetic scanner
-(mi_grg.simulate.default_geometry) at 64^3 / 96^2 and 128^3 / 192^2, 25 views, TIGRE noise
+Case: Shepp-Logan (mi_grg.data.phantoms), R2-Gaussian's synthetic scanner
+(mi_grg.data.simulate.default_geometry) at 64^3 / 96^2 and 128^3 / 192^2, 25 views, TIGRE noise
 (I0 = 1e4, electronic std 10). Every timing is a median of >= 3 runs after a JIT warm-up
 run, whose time is reported separately; the RTK runs use the same data, geometry and
 machine in the same process, so the ratios compare like with like.
@@ -26,13 +26,13 @@ import mi_grg  # noqa: F401  (before mitsuba / drjit)
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.fdk import fdk, fdk_backproject, filter_projections
-from mi_grg.iterative import asd_pocs, sart
-from mi_grg.metrics import psnr_3d, ssim_3d
-from mi_grg.noise import NoiseModel
-from mi_grg.phantoms import make_phantom
-from mi_grg.simulate import default_geometry
-from mi_grg.voxel_projector import JosephProjector
+from mi_grg.classical.fdk import fdk, fdk_backproject, filter_projections
+from mi_grg.classical.iterative import asd_pocs, sart
+from mi_grg.evaluation.metrics import psnr_3d, ssim_3d
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.phantoms import make_phantom
+from mi_grg.data.simulate import default_geometry
+from mi_grg.classical.joseph import JosephProjector
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))          # the RTK geometry mapping lives there
@@ -341,7 +341,7 @@ def write_markdown(res, path):
           "ours); RTK's SART uses its own default lambda (0.3) and projectors, so its "
           "PSNR differs from ours by more than rounding.",
           "- SART and ASD-POCS semi-converge on these noisy 25-view data (see "
-          "`mi_grg/iterative.py`); PSNR/SSIM use `mi_grg.metrics` (data range 1).", ""]
+          "`mi_grg/iterative.py`); PSNR/SSIM use `mi_grg.evaluation.metrics` (data range 1).", ""]
     path.write_text("\n".join(L) + "\n")
 
 

@@ -1,4 +1,4 @@
-"""Benchmark: mi_grg.graph kNN + mutual edges vs scipy's cKDTree, same run, same points.
+"""Benchmark: mi_grg.training.graph kNN + mutual edges vs scipy's cKDTree, same run, same points.
 
     .venv/bin/python bench/graph.py [--sizes 10000 50000 200000] [--repeats 5] [--k 6]
 
@@ -30,7 +30,7 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi  # noqa: F401
 
-from mi_grg import graph as G
+from mi_grg.training import graph as G
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -33,14 +33,14 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.config import make_config
-from mi_grg.dataset import load_case
-from mi_grg.gaussians import Gaussians
-from mi_grg.graph import (build_graph, graph_density_scale, laplacian_loss,
+from mi_grg.training.config import make_config
+from mi_grg.data.dataset import load_case
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.training.graph import (build_graph, graph_density_scale, laplacian_loss,
                           mean_abs_density_difference)
-from mi_grg.losses import projection_loss
-from mi_grg.projector import project_dr
-from mi_grg.train import REFERENCE_N
+from mi_grg.training.losses import projection_loss
+from mi_grg.core.projector import project_dr
+from mi_grg.training.trainer import REFERENCE_N
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Benchmark of the radiative-Gaussian projector (mi_grg.projector) on the CPU (LLVM).
+"""Benchmark of the radiative-Gaussian projector (mi_grg.core.projector) on the CPU (LLVM).
 
     .venv/bin/python bench/projector.py            # full grid (a few minutes on 2 cores)
     .venv/bin/python bench/projector.py --quick    # smoke run
@@ -37,8 +37,8 @@ def _workload(n, nd, seed=0, views=1):
     import numpy as np
     from scipy.spatial import cKDTree
     import mi_grg
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.geometry import circular_angles
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.geometry import circular_angles
     rng = np.random.default_rng(seed)
     x = rng.normal(size=(n, 3))
     x *= (rng.uniform(0, 1, (n, 1)) ** (1 / 3)) / np.linalg.norm(x, axis=1, keepdims=True)
@@ -69,7 +69,7 @@ def _fwd_bwd_fns(g, geo, extent, views):
     import drjit as dr
     import mitsuba as mi
     import numpy as np
-    from mi_grg.projector import project_dr
+    from mi_grg.core.projector import project_dr
     nv, nu = geo.nDetector
     y = mi.Float(np.random.default_rng(1).normal(size=views * nv * nu).astype(np.float32))
 
@@ -92,7 +92,7 @@ def _fwd_bwd_fns(g, geo, extent, views):
 def _pairs(g, geo, extent):
     """(Gaussian, pixel) evaluations of one forward pass, from the projector's profiler."""
     import drjit as dr
-    from mi_grg import projector as P
+    from mi_grg.core import projector as P
     P._PROFILE = {}
     with dr.suspend_grad():
         dr.eval(P.project_dr(g, geo, extent=extent))
@@ -102,7 +102,7 @@ def _pairs(g, geo, extent):
 
 def worker_grid(cfg):
     import resource
-    from mi_grg.projector import DEFAULT_EXTENT
+    from mi_grg.core.projector import DEFAULT_EXTENT
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
     t0 = time.perf_counter()
     g, geo, _ = _workload(cfg["n"], cfg["nd"], views=cfg.get("views", 1))
@@ -126,7 +126,7 @@ def worker_grid(cfg):
 
 def worker_phases(cfg):
     """Where the time goes (profiled run: synchronises between phases)."""
-    from mi_grg import projector as P
+    from mi_grg.core import projector as P
     g, geo, _ = _workload(cfg["n"], cfg["nd"])
     _, fwd_bwd = _fwd_bwd_fns(g, geo, P.DEFAULT_EXTENT, 1)
     fwd_bwd()
@@ -144,7 +144,7 @@ def worker_phases(cfg):
 
 def worker_extent(cfg):
     import numpy as np
-    from mi_grg.projector import project
+    from mi_grg.core.projector import project
     g, geo, _ = _workload(cfg["n"], cfg["nd"])
     ref = project(g, geo, extent=9.0).astype(np.float64)    # truncation exp(-40.5) ~ 3e-18
     rows = []
@@ -166,7 +166,7 @@ def worker_extent(cfg):
 def worker_footprint(cfg):
     """Pixels a conservative bounding-sphere box would visit vs the exact footprint."""
     import numpy as np
-    from mi_grg.projector import DEFAULT_EXTENT
+    from mi_grg.core.projector import DEFAULT_EXTENT
     g, geo, (x, s, q) = _workload(cfg["n"], cfg["nd"])
     exact, _ = _pairs(g, geo, DEFAULT_EXTENT)
     E = DEFAULT_EXTENT
@@ -192,8 +192,8 @@ def worker_ad_compare(cfg):
     import drjit as dr
     import mitsuba as mi
     import numpy as np
-    from mi_grg import projector as P
-    from mi_grg.gaussians import Gaussians
+    from mi_grg.core import projector as P
+    from mi_grg.core.gaussians import Gaussians
     g, geo, _ = _workload(cfg["n"], cfg["nd"])
     fr = P.view_frames(geo)
     C = P._Consts(fr, geo, P.DEFAULT_EXTENT)
@@ -377,7 +377,7 @@ def main(argv=None):
         out = WORKERS[a.worker[0]](json.loads(a.worker[1]))
         print(json.dumps(out))
         return 0
-    from mi_grg.projector import DEFAULT_EXTENT  # noqa: F401 (also checks the import)
+    from mi_grg.core.projector import DEFAULT_EXTENT  # noqa: F401 (also checks the import)
     runs = max(3, a.runs or 3)
     if a.quick:
         ns, nds = [10_000], [128]

@@ -2,7 +2,7 @@
 
 Each (phantom, size, method) runs in its own process, so that its peak resident memory
 (ru_maxrss) is its own. Cases: 25 noisy views (TIGRE CTnoise, I0 1e4, electronic std 10),
-default scanner (mi_grg.simulate.default_geometry), detector 1.5 x the volume size.
+default scanner (mi_grg.data.simulate.default_geometry), detector 1.5 x the volume size.
 Writes docs/bench/reconstruct.json and .md (medians are not taken here: one run per cell,
 the training runs take minutes; the seed is fixed).
 
@@ -33,8 +33,8 @@ METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
 def one(phantom: str, n: int, method: str) -> dict:
     """Simulate (seeded) and reconstruct one case in this process."""
     import mi_grg
-    from mi_grg.noise import NoiseModel
-    from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     geo = default_geometry(n=n, det=int(1.5 * n), views=25)
     case = simulate_case(phantom, geo, default_test_angles(25), NoiseModel(), seed=0)
     opts = {} if method == "fdk" else {"progress": False}

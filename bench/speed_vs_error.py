@@ -24,13 +24,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mi_grg
-    from mi_grg.crosscheck import (_gaussian_box, _register_and_load, _scene,
+    from mi_grg.evaluation.crosscheck import (_gaussian_box, _register_and_load, _scene,
                                    closed_form_projection, grid_medium, integrate_volume,
                                    render_transmittance)
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.geometry import circular_angles
-    from mi_grg.projector import project
-    from mi_grg.voxelizer import voxelize
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.geometry import circular_angles
+    from mi_grg.core.projector import project
+    from mi_grg.core.voxelizer import voxelize
 
     rng = np.random.default_rng(0)
     n = 60

@@ -29,9 +29,9 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.gaussians import Gaussians
-from mi_grg.geometry import Geometry
-from mi_grg.voxelizer import DEFAULT_EXTENT, pair_count, voxelize, voxelize_dr
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.geometry import Geometry
+from mi_grg.core.voxelizer import DEFAULT_EXTENT, pair_count, voxelize, voxelize_dr
 
 TARGET_128 = 0.5   # seconds
 

@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Arc, Rectangle  # noqa: E402
 
-from mi_grg.geometry import Geometry  # noqa: E402
+from mi_grg.core.geometry import Geometry  # noqa: E402
 
 A = math.radians(35)  # the drawn view angle
 GEO = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(8, 8), sDetector=(4.2, 4.2),

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import os as _os
 
-from ._llvm import LLVMNotFoundError, configure_llvm as _configure_llvm
+from mi_grg._llvm import LLVMNotFoundError, configure_llvm as _configure_llvm
 
 __version__ = "0.1.0"
 
@@ -16,46 +16,46 @@ _configure_llvm(required=_requested.startswith("llvm"))
 
 import mitsuba as _mi  # noqa: E402  (after DRJIT_LIBLLVM_PATH is set)
 
-from .variant import available_variants, set_variant, variant  # noqa: E402
+from mi_grg.variant import available_variants, set_variant, variant  # noqa: E402
 
 set_variant(_requested)
 
-from .geometry import Geometry  # noqa: E402
+from mi_grg.core.geometry import Geometry  # noqa: E402
 
 # Public names, imported on first use so that `import mi_grg` stays light.
 _LAZY = {
-    "Case": "mi_grg.case",
-    "Gaussians": "mi_grg.gaussians",
-    "load_case": "mi_grg.dataset",
-    "save_case": "mi_grg.dataset",
-    "DatasetError": "mi_grg.dataset",
+    "Case": "mi_grg.data.case",
+    "Gaussians": "mi_grg.core.gaussians",
+    "load_case": "mi_grg.data.dataset",
+    "save_case": "mi_grg.data.dataset",
+    "DatasetError": "mi_grg.data.dataset",
     "reconstruct": "mi_grg.methods",
     "register_method": "mi_grg.methods",
-    "metrics": "mi_grg.metrics",
-    "make_phantom": "mi_grg.phantoms",
-    "EllipsoidPhantom": "mi_grg.phantoms",
-    "PHANTOMS": "mi_grg.phantoms",
-    "NoiseModel": "mi_grg.noise",
-    "simulate_case": "mi_grg.simulate",
-    "default_geometry": "mi_grg.simulate",
-    "project": "mi_grg.projector",
-    "project_dr": "mi_grg.projector",
-    "sart": "mi_grg.iterative",
-    "asd_pocs": "mi_grg.iterative",
-    "forward_project": "mi_grg.voxel_projector",
-    "back_project": "mi_grg.voxel_projector",
-    "voxelize": "mi_grg.voxelizer",
-    "voxelize_dr": "mi_grg.voxelizer",
-    "save_ply": "mi_grg.ply",
-    "load_ply": "mi_grg.ply",
-    "render_crosscheck": "mi_grg.crosscheck",
-    "simulate_volume_case": "mi_grg.volume_phantom",
-    "run_experiment": "mi_grg.experiments",
-    "write_report": "mi_grg.report",
-    "load_scan": "mi_grg.scene",
-    "Scan": "mi_grg.scene",
-    "write_scan_xml": "mi_grg.scene",
-    "load_mitsuba_scene": "mi_grg.scene",
+    "metrics": "mi_grg.evaluation.metrics",
+    "make_phantom": "mi_grg.data.phantoms",
+    "EllipsoidPhantom": "mi_grg.data.phantoms",
+    "PHANTOMS": "mi_grg.data.phantoms",
+    "NoiseModel": "mi_grg.data.noise",
+    "simulate_case": "mi_grg.data.simulate",
+    "default_geometry": "mi_grg.data.simulate",
+    "project": "mi_grg.core.projector",
+    "project_dr": "mi_grg.core.projector",
+    "sart": "mi_grg.classical.iterative",
+    "asd_pocs": "mi_grg.classical.iterative",
+    "forward_project": "mi_grg.classical.joseph",
+    "back_project": "mi_grg.classical.joseph",
+    "voxelize": "mi_grg.core.voxelizer",
+    "voxelize_dr": "mi_grg.core.voxelizer",
+    "save_ply": "mi_grg.data.ply",
+    "load_ply": "mi_grg.data.ply",
+    "render_crosscheck": "mi_grg.evaluation.crosscheck",
+    "simulate_volume_case": "mi_grg.data.volume_phantom",
+    "run_experiment": "mi_grg.lab.experiments",
+    "write_report": "mi_grg.lab.report",
+    "load_scan": "mi_grg.data.scene",
+    "Scan": "mi_grg.data.scene",
+    "write_scan_xml": "mi_grg.data.scene",
+    "load_mitsuba_scene": "mi_grg.data.scene",
 }
 
 
@@ -63,7 +63,7 @@ def __getattr__(name):
     if name in _LAZY:
         import importlib
         module = importlib.import_module(_LAZY[name])
-        return module if module.__name__ == f"mi_grg.{name}" else getattr(module, name)
+        return module if module.__name__.rsplit(".", 1)[-1] == name else getattr(module, name)
     raise AttributeError(f"module 'mi_grg' has no attribute {name!r}")
 
 

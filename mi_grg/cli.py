@@ -55,7 +55,7 @@ def _refuse_scene_conflicts(args) -> None:
 def _check_simulable(scan, path) -> None:
     """simulate computes exact line integrals of an analytic phantom; refuse a scene that
     asks for anything else rather than leave part of it silently unused."""
-    from .scene import tag_of
+    from mi_grg.data.scene import tag_of
     unused = [f"<{tag_of(o['type'], 'object')} type=\"{o['type']}\">"
               for o in ([scan.integrator] if scan.integrator else []) + list(scan.other)]
     if unused:
@@ -73,8 +73,8 @@ def _check_simulable(scan, path) -> None:
 def _default_scan(args):
     """The scan that the flags describe (no --scene), as a ``Scan`` and the seed."""
     import numpy as np
-    from .scene import DEFAULT_ELECTRONIC_STD, DEFAULT_I0, Scan
-    from .simulate import default_geometry, default_test_angles
+    from mi_grg.data.scene import DEFAULT_ELECTRONIC_STD, DEFAULT_I0, Scan
+    from mi_grg.data.simulate import default_geometry, default_test_angles
 
     noise_flags = [f for k, f in (("I0", "--I0"), ("electronic_std", "--electronic-std"))
                    if getattr(args, k) is not None]
@@ -102,10 +102,10 @@ def _default_scan(args):
 
 
 def cmd_simulate(args) -> int:
-    from .dataset import save_case
-    from .noise import NoiseModel
-    from .scene import load_scan, scan_to_xml
-    from .simulate import simulate_case
+    from mi_grg.data.dataset import save_case
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.scene import load_scan, scan_to_xml
+    from mi_grg.data.simulate import simulate_case
 
     if args.scene:
         _refuse_scene_conflicts(args)
@@ -137,7 +137,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .methods import reconstruct
+    from mi_grg.methods import reconstruct
     options = _parse_options(args.option)
     if args.config:
         options["config"] = args.config
@@ -152,7 +152,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from .crosscheck import render_crosscheck
+    from mi_grg.evaluation.crosscheck import render_crosscheck
     result = render_crosscheck(args.scene, spp=args.spp, out_dir=args.out, seed=args.seed)
     print(json.dumps(result, indent=2, default=float))
     return 0
@@ -161,7 +161,7 @@ def cmd_render(args) -> int:
 def cmd_demo(args) -> int:
     """Simulate a noisy 25-view Shepp-Logan scan and reconstruct it with each method
     (GR-Gaussian takes a few minutes on a 2-core CPU; the classical methods seconds)."""
-    from .methods import reconstruct
+    from mi_grg.methods import reconstruct
     out = Path(args.out)
     data = out / "shepp_64"
     # None = the flag's default (TIGRE's noise: I0 1e4, electronic std 10; seed 0)
@@ -181,7 +181,7 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .phantoms import PHANTOMS
+    from mi_grg.data.phantoms import PHANTOMS
     p = argparse.ArgumentParser(prog="mi-grg", description=__doc__)
     p.add_argument("--variant", default=None, choices=("llvm_ad_mono", "cuda_ad_mono"),
                    help="Dr.Jit/Mitsuba variant (default: llvm_ad_mono, or $MI_GRG_VARIANT)")
@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", required=True)
     q.set_defaults(func=cmd_render)
 
-    from .experiments import add_experiment_parser
+    from mi_grg.lab.experiments import add_experiment_parser
     add_experiment_parser(sub)  # `experiment NAME --suite FILE --out DIR` and `report`
 
     d = sub.add_parser("demo", help="built-in example: simulate Shepp-Logan, reconstruct")

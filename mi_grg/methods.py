@@ -23,16 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .case import Case
+from mi_grg.data.case import Case
 
 # name -> "module:function"; imported on use so that one method's import cost (or a
 # missing optional dependency) never affects the others.
 METHODS: dict = {
-    "fdk": "mi_grg.fdk:reconstruct_fdk",
-    "sart": "mi_grg.iterative:reconstruct_sart",
-    "asd-pocs": "mi_grg.iterative:reconstruct_asd_pocs",
-    "r2": "mi_grg.train:reconstruct_r2",
-    "gr": "mi_grg.train:reconstruct_gr",
+    "fdk": "mi_grg.classical.fdk:reconstruct_fdk",
+    "sart": "mi_grg.classical.iterative:reconstruct_sart",
+    "asd-pocs": "mi_grg.classical.iterative:reconstruct_asd_pocs",
+    "r2": "mi_grg.training.trainer:reconstruct_r2",
+    "gr": "mi_grg.training.trainer:reconstruct_gr",
 }
 
 
@@ -68,7 +68,7 @@ def code_version(root: Path | None = None) -> str:
     "+dirty" with uncommitted changes to tracked files under CODE_PATHS): which code
     produced a result. root: the checkout (default: the one holding this package)."""
     import subprocess
-    from . import __version__
+    from mi_grg import __version__
     root = Path(__file__).resolve().parent.parent if root is None else Path(root)
     try:
         git = ["git", "-C", str(root)]
@@ -104,7 +104,7 @@ def geometry_info(case: Case) -> dict:
 
 def score(pred: np.ndarray, gt: np.ndarray) -> dict:
     """3-D PSNR / SSIM in the R2-Gaussian convention (data range 1)."""
-    from .metrics import psnr_3d, ssim_3d
+    from mi_grg.evaluation.metrics import psnr_3d, ssim_3d
     return {"psnr_3d": float(psnr_3d(pred, gt)), "ssim_3d": float(ssim_3d(pred, gt))}
 
 
@@ -115,7 +115,7 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
     ``out_dir`` is given.
     """
     if not isinstance(case, Case):
-        from .dataset import load_case
+        from mi_grg.data.dataset import load_case
         case = load_case(case)
     func = get_method(method)
     params = inspect.signature(func).parameters
@@ -142,7 +142,7 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
                "geometry": geometry_info(case),
-               # {} says that nothing was clamped; see mi_grg.dataset.NEG_TOL_REL
+               # {} says that nothing was clamped; see mi_grg.data.dataset.NEG_TOL_REL
                "clamped_negatives": dict(case.clamped),
                "data": case.info, "machine": machine_info()}
     if info is not None:
@@ -156,7 +156,7 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
 
 def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None) -> Path:
     """Write vol_pred.npy, metrics.json and slices.png into ``out_dir``."""
-    from .plotting import slice_montage
+    from mi_grg.evaluation.plotting import slice_montage
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     np.save(out / "vol_pred.npy", vol.astype(np.float32))

@@ -1,6 +1,6 @@
 """The ``ct_phantom`` medium: an analytic ellipsoid phantom as the object of a CT scene.
 
-It names what is scanned (``mi_grg.phantoms.make_phantom``) and, as a pure absorber
+It names what is scanned (``mi_grg.data.phantoms.make_phantom``) and, as a pure absorber
 whose extinction is the phantom's density, lets Mitsuba's own ``volpath`` render its
 transmittance ``exp(-line integral)`` for cross-checks. It is placed by the
 ``ct_scanner`` sensor whose ``medium`` it is (``place(geometry)``), with the mapping of
@@ -12,8 +12,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.phantoms import PHANTOMS, EllipsoidPhantom, make_phantom
-from mi_grg.scene import ScanError, check_field_names, suggest
+from mi_grg.data.phantoms import PHANTOMS, EllipsoidPhantom, make_phantom
+from mi_grg.data.scene import ScanError, check_field_names, suggest
 
 _FIELDS = {"phantom": "shepp | needles | shells", "seed": "random families only"}
 

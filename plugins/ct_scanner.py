@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.scene import check_field_names, parse_scanner_fields
+from mi_grg.data.scene import check_field_names, parse_scanner_fields
 
 
 class CTScanner(mi.Sensor):

@@ -2,7 +2,7 @@
 
 sigma_t(x) = scale * sum_i rho_i exp(-1/2 m_i(x)^2) [m_i(x) <= extent], evaluated directly
 (no voxel grid), albedo 0. Mitsuba's ``volpath`` then estimates exp(-line integral) by delta
-tracking, an independent check of the closed-form projector (``mi_grg.crosscheck``).
+tracking, an independent check of the closed-form projector (``mi_grg.evaluation.crosscheck``).
 """
 from __future__ import annotations
 
@@ -36,9 +36,9 @@ def majorant_bound(positions, scales, rotations, densities, extent, bbox_lo, bbo
     total = float(rho.sum())
     if total == 0.0:
         return 0.0
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.geometry import Geometry
-    from mi_grg.voxelizer import voxelize
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.geometry import Geometry
+    from mi_grg.core.voxelizer import voxelize
     lo, hi = np.asarray(bbox_lo, np.float64), np.asarray(bbox_hi, np.float64)
     size = np.maximum(hi - lo, 1e-9)
     # a throw-away geometry: only its voxel grid matters to the voxelizer
@@ -69,7 +69,7 @@ class GaussianMedium(mi.Medium):
 
      * - filename
        - |string|
-       - Gaussians as a ``.npz`` (``mi_grg.gaussians.Gaussians.save_npz``: positions [N, 3],
+       - Gaussians as a ``.npz`` (``mi_grg.core.gaussians.Gaussians.save_npz``: positions [N, 3],
          scales [N, 3] (length), rotations [N, 4] (w, x, y, z), densities [N] (1/length)).
      * - extent
        - |float|
@@ -88,8 +88,8 @@ class GaussianMedium(mi.Medium):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        from mi_grg.gaussians import Gaussians
-        from mi_grg.voxelizer import DEFAULT_EXTENT
+        from mi_grg.core.gaussians import Gaussians
+        from mi_grg.core.voxelizer import DEFAULT_EXTENT
         if "filename" not in props:
             raise ValueError("gaussian_medium needs 'filename' (a Gaussians .npz)")
         name = str(props["filename"])

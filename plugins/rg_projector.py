@@ -1,7 +1,7 @@
 """The ``rg_projector`` integrator: radiative-Gaussian X-ray projections as a Mitsuba integrator.
 
 It renders, for a sensor that exposes a ``geometry`` (``ct_scanner``), the exact line
-integrals of its Gaussians (``mi_grg.projector``) into the sensor's film layout
+integrals of its Gaussians (``mi_grg.core.projector``) into the sensor's film layout
 [views * nv, nu, 1]. Its Gaussian arrays are scene parameters, so ``mi.traverse``,
 ``mi.ad`` optimizers, ``mi.render(scene, params=...)`` and ``dr.backward`` work.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.gaussians import Gaussians
-from mi_grg.projector import DEFAULT_EXTENT, ProjectorError, project_dr
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.projector import DEFAULT_EXTENT, ProjectorError, project_dr
 
 _KEYS = ("positions", "scales", "rotations", "densities")
 

@@ -27,7 +27,7 @@ def rng():
 @pytest.fixture
 def small_cone_geometry():
     """A small cone-beam scan in R2-Gaussian's normalised units (volume in [-1, 1]^3)."""
-    from mi_grg.geometry import circular_angles
+    from mi_grg.core.geometry import circular_angles
     return mi_grg.Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(24, 32),
                            sDetector=(3.0, 4.0), nVoxel=(16, 16, 16), sVoxel=(2.0, 2.0, 2.0),
                            angles=circular_angles(5))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mi_grg.cli import SCENE_XML, main
-from mi_grg.scene import load_scan
+from mi_grg.data.scene import load_scan
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 TINY = ["--n", "16", "--det", "24", "--views", "6", "--test-views", "2"]

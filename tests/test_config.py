@@ -1,7 +1,7 @@
 """Training configs: presets, XML files, overrides, and rejection of unknown keys."""
 import pytest
 
-from mi_grg.config import (ConfigError, PRESETS, TrainConfig, make_config, read_config_xml,
+from mi_grg.training.config import (ConfigError, PRESETS, TrainConfig, make_config, read_config_xml,
                            write_config_xml)
 
 

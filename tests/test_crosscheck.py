@@ -9,9 +9,9 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.crosscheck import compare, integrate_volume, render_crosscheck
-from mi_grg.gaussians import Gaussians
-from mi_grg.geometry import Geometry
+from mi_grg.evaluation.crosscheck import compare, integrate_volume, render_crosscheck
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.geometry import Geometry
 
 
 def tiny_case(rng, n=4):
@@ -170,7 +170,7 @@ def test_a_biased_estimate_is_detected(rng):
 
 
 def test_scene_file_route(tmp_path, rng):
-    from mi_grg.scene import Scan, write_scan_xml
+    from mi_grg.data.scene import Scan, write_scan_xml
     g, geo, _ = tiny_case(rng, n=2)
     g.save_npz(tmp_path / "blobs.npz")
     mi_grg.set_variant(mi.variant())

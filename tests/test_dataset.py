@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.case import Case
-from mi_grg.dataset import (NEG_TOL_REL, DatasetError, DatasetWarning, load_case, read_exr,
+from mi_grg.data.case import Case
+from mi_grg.data.dataset import (NEG_TOL_REL, DatasetError, DatasetWarning, load_case, read_exr,
                             save_case, write_exr)
-from mi_grg.geometry import circular_angles
+from mi_grg.core.geometry import circular_angles
 
 NV, NU = 6, 8          # detector [v, u]
 NVOX = (4, 5, 7)       # volume [x, y, z]

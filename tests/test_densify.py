@@ -1,4 +1,4 @@
-"""PGA densification (mi_grg.densify): bookkeeping, sampling, pruning, Adam surgery."""
+"""PGA densification (mi_grg.training.densify): bookkeeping, sampling, pruning, Adam surgery."""
 import math
 
 import numpy as np
@@ -8,9 +8,9 @@ import mi_grg  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.densify import DensifyConfig, DensifyError, PGADensifier
-from mi_grg.gaussians import Gaussians, inverse_covariance
-from mi_grg.optim import Adam
+from mi_grg.training.densify import DensifyConfig, DensifyError, PGADensifier
+from mi_grg.core.gaussians import Gaussians, inverse_covariance
+from mi_grg.training.optim import Adam
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])   # volume size 2: clone if s <= 0.2
 TWO_PI_32 = (2 * math.pi) ** 1.5
@@ -295,9 +295,9 @@ def test_accumulate_multi_view_visibility(variant, rng):
 
 
 def test_from_train_config_and_graph_module(variant, rng):
-    """Composition with mi_grg.config and mi_grg.graph (skipped if they are absent)."""
-    config = pytest.importorskip("mi_grg.config")
-    graph = pytest.importorskip("mi_grg.graph")
+    """Composition with mi_grg.training.config and mi_grg.training.graph (skipped if they are absent)."""
+    config = pytest.importorskip("mi_grg.training.config")
+    graph = pytest.importorskip("mi_grg.training.graph")
     cfg = config.TrainConfig(densify_interval=50, densify_start=100, densify_stop=1000,
                              densify_grad_threshold=3e-5, lambda_g=2e-4, use_pga=True,
                              max_gaussians=1234)
@@ -331,8 +331,8 @@ def test_rebuild_keeps_graph_field_through_clones(variant, rng):
     """Clones change neither positions nor the plain field; with carry_density_scale the
     graph field after the rebuild equals the one before (float64 reference), without it
     the clone pairs render more mass. ``source`` names each row's origin."""
-    graph = pytest.importorskip("mi_grg.graph")
-    from mi_grg.train import carry_density_scale
+    graph = pytest.importorskip("mi_grg.training.graph")
+    from mi_grg.training.trainer import carry_density_scale
     n = 300
     pos = rng.uniform(-0.5, 0.5, (n, 3))
     raw = make_raw(pos, np.full((n, 3), 0.04), rng.uniform(0.1, 1.0, n))

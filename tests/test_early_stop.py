@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from mi_grg.early_stop import EarlyStopper
+from mi_grg.training.early_stop import EarlyStopper
 
 
 def test_stops_on_drop_of_more_than_half_a_percent_from_the_best():

@@ -1,4 +1,4 @@
-"""mi_grg.experiments / mi_grg.report end to end on a tiny suite (16^3, 4 views, fdk + sart):
+"""mi_grg.lab.experiments / mi_grg.lab.report end to end on a tiny suite (16^3, 4 views, fdk + sart):
 resumability, parallel = serial, failure isolation, and a report whose numbers are read back
 independently from metrics.json."""
 import json
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.config import make_config
-from mi_grg.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
+from mi_grg.training.config import make_config
+from mi_grg.lab.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
                                 plan_experiment, run_experiment, stale_options)
-from mi_grg.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
+from mi_grg.lab.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
                            summary_lines, write_report)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -84,15 +84,15 @@ def test_table1_runs_and_data(serial):
             assert m["nVoxel"] == [16, 16, 16] and m["n_train_views"] == 4
     assert _metrics(out, "shepp", "sart")["options"]["n_iter"] == 2
     # the data are what the suite says: same as simulating directly
-    from mi_grg.noise import NoiseModel
-    from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     geo = default_geometry(n=16, det=24, views=4)
     direct = simulate_case("shepp", geo, default_test_angles(2), NoiseModel(1e4, 10.0), seed=0)
     case = mi_grg.load_case(out / "data" / "shepp")
     np.testing.assert_allclose(case.train, direct.train, atol=1e-6)
     np.testing.assert_allclose(case.vol_gt, direct.vol_gt, atol=1e-7)
     blob = mi_grg.load_case(out / "data" / "blob")
-    assert blob.info["source"] == "mi_grg.volume_phantom"
+    assert blob.info["source"] == "mi_grg.data.volume_phantom"
 
 
 def test_rerun_does_no_work(serial):
@@ -126,7 +126,7 @@ def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
     """runs.json is written as runs finish: a runner killed after the first run has
     recorded it (and nothing it did not finish)."""
     import drjit as dr
-    import mi_grg.experiments as ex
+    import mi_grg.lab.experiments as ex
     suite = _suite(tmp_path)
 
     def first_then_killed(func, tasks, jobs, desc, progress, on_result=None):

@@ -1,4 +1,4 @@
-"""FDK / FBP (mi_grg.fdk).
+"""FDK / FBP (mi_grg.classical.fdk).
 
 References: density of a uniform ball from its closed-form projections (units), the
 analytic ramp |f|, scikit-image's ``iradon`` (2-D parallel-beam peer), RTK's
@@ -8,9 +8,9 @@ the voxelised Shepp-Logan phantom as the number of views grows.
 import numpy as np
 import pytest
 
-from mi_grg.case import Case
-from mi_grg.fdk import FILTERS, fdk, ramp_filter, reconstruct_fdk
-from mi_grg.geometry import Geometry, circular_angles
+from mi_grg.data.case import Case
+from mi_grg.classical.fdk import FILTERS, fdk, ramp_filter, reconstruct_fdk
+from mi_grg.core.geometry import Geometry, circular_angles
 
 from test_voxel_projector import (ball_chords, ball_volume, from_rtk_volume, rtk_geometry,
                                   rtk_or_skip, to_rtk_projections, to_rtk_volume)
@@ -108,7 +108,7 @@ def test_fdk_matches_rtk():
     back-projection with (DSO / (DSO - s))^2 and angular weights: agreement to float32
     rounding (RTK's truncation correction is switched off)."""
     itk, rtk = rtk_or_skip()
-    from mi_grg.phantoms import make_phantom
+    from mi_grg.data.phantoms import make_phantom
     geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(40, 48), sDetector=(3.5, 4.2),
                    nVoxel=(32, 30, 28), sVoxel=(2.0, 1.9, 1.8), angles=circular_angles(40))
     proj = make_phantom("shepp").line_integrals(geo).astype(np.float32)
@@ -127,9 +127,9 @@ def test_fdk_matches_rtk():
 
 # ---------------------------------------------------------------- convergence
 def test_psnr_rises_with_the_number_of_views():
-    from mi_grg.metrics import psnr_3d
-    from mi_grg.phantoms import make_phantom
-    from mi_grg.simulate import default_geometry
+    from mi_grg.evaluation.metrics import psnr_3d
+    from mi_grg.data.phantoms import make_phantom
+    from mi_grg.data.simulate import default_geometry
     ph = make_phantom("shepp")
     gt = ph.voxelize(default_geometry(48, 64, 25), 2)
     psnr = []

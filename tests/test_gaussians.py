@@ -1,10 +1,10 @@
-"""Gaussians activations (mi_grg.gaussians): softplus density and its inverse vs float64."""
+"""Gaussians activations (mi_grg.core.gaussians): softplus density and its inverse vs float64."""
 import numpy as np
 
 import mi_grg  # noqa: F401
 import mitsuba as mi
 
-from mi_grg.gaussians import Gaussians
+from mi_grg.core.gaussians import Gaussians
 
 
 def test_density_activation_round_trip_against_float64(variant):

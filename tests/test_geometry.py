@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_grg.geometry import Geometry, GeometryError, circular_angles
+from mi_grg.core.geometry import Geometry, GeometryError, circular_angles
 
 # A small scanner whose pixel centres are round numbers: 3 x 5 pixels of 0.5 x 0.5, so the
 # row offsets along e_v are (i - 1) * 0.5 and the column offsets along e_u are (j - 2) * 0.5.

@@ -1,4 +1,4 @@
-"""The Gaussian graph (mi_grg.graph) against independent references: scipy's cKDTree in
+"""The Gaussian graph (mi_grg.training.graph) against independent references: scipy's cKDTree in
 float64, Python set constructions, dense NumPy matrices (W, L = D - W) and finite
 differences."""
 import numpy as np
@@ -9,7 +9,7 @@ import mi_grg  # noqa: F401  (sets up LLVM before mitsuba/drjit)
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg import graph as G
+from mi_grg.training import graph as G
 
 
 # ---------------------------------------------------------------------------- clouds

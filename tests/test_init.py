@@ -1,10 +1,10 @@
-"""De-Init (mi_grg.init) vs scipy.ndimage and brute-force NumPy references."""
+"""De-Init (mi_grg.training.init) vs scipy.ndimage and brute-force NumPy references."""
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
 import mi_grg
-from mi_grg.init import (InitError, auto_density_rescale, default_radius, denoise_volume,
+from mi_grg.training.init import (InitError, auto_density_rescale, default_radius, denoise_volume,
                          init_gaussians, sigma_d_voxels)
 
 
@@ -37,7 +37,7 @@ def test_denoise_radius_and_identity(variant, rng):
 
 
 def _geometry(n=(12, 10, 8)):
-    from mi_grg.geometry import circular_angles
+    from mi_grg.core.geometry import circular_angles
     return mi_grg.Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(8, 8),
                            sDetector=(3.0, 3.0), nVoxel=n, sVoxel=(2.0, 1.6, 1.2),
                            offOrigin=(0.1, -0.2, 0.05), angles=circular_angles(3))

@@ -1,4 +1,4 @@
-"""SART / OS-SART / ASD-POCS (mi_grg.iterative).
+"""SART / OS-SART / ASD-POCS (mi_grg.classical.iterative).
 
 References: finite differences of a float64 NumPy TV for the TV gradient; convergence on
 a consistent problem; scikit-image's ``iradon_sart`` (2-D peer); PSNR against the
@@ -10,11 +10,11 @@ import pytest
 import mi_grg  # noqa: F401  (before mitsuba)
 import mitsuba as mi
 
-from mi_grg.case import Case
-from mi_grg.geometry import Geometry, circular_angles
-from mi_grg.iterative import (asd_pocs, order_subsets, reconstruct_asd_pocs, reconstruct_sart,
+from mi_grg.data.case import Case
+from mi_grg.core.geometry import Geometry, circular_angles
+from mi_grg.classical.iterative import (asd_pocs, order_subsets, reconstruct_asd_pocs, reconstruct_sart,
                               sart, tv_gradient, tv_value)
-from mi_grg.voxel_projector import forward_project
+from mi_grg.classical.joseph import forward_project
 
 from test_fdk import skimage_slice_case
 
@@ -108,11 +108,11 @@ def test_iterative_methods_beat_fdk_on_noisy_sparse_views():
     settings SART and ASD-POCS are > 1.5 dB better than FDK (measured: FDK 20.7 dB, SART
     23.3 dB, ASD-POCS 24.3 dB). Both semi-converge: on such data their PSNR peaks after a
     few sweeps, hence the default of 10."""
-    from mi_grg.fdk import fdk
-    from mi_grg.metrics import psnr_3d
-    from mi_grg.noise import NoiseModel
-    from mi_grg.phantoms import make_phantom
-    from mi_grg.simulate import default_geometry
+    from mi_grg.classical.fdk import fdk
+    from mi_grg.evaluation.metrics import psnr_3d
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.phantoms import make_phantom
+    from mi_grg.data.simulate import default_geometry
     geo = default_geometry(48, 64, 25)
     ph = make_phantom("shepp")
     gt = ph.voxelize(geo, 2)
@@ -150,7 +150,7 @@ def test_contract_options_progress_and_errors(small_cone_geometry, rng, capsys):
     init = np.full(geo.nVoxel, 0.5, np.float32)
     v = sart(case.train, geo, n_iter=1, init=init, relaxation=1e-6, progress=False)
     np.testing.assert_allclose(v, init, atol=1e-4)
-    from mi_grg.fdk import fdk
+    from mi_grg.classical.fdk import fdk
     v = sart(case.train, geo, n_iter=1, init="fdk", relaxation=1e-6, progress=False)
     np.testing.assert_allclose(v, np.maximum(fdk(case.train, geo), 0), atol=1e-4)
     with pytest.raises(ValueError, match="init must be"):

@@ -1,4 +1,4 @@
-"""Losses (mi_grg.losses) vs float64 NumPy references and central finite differences."""
+"""Losses (mi_grg.training.losses) vs float64 NumPy references and central finite differences."""
 import numpy as np
 import pytest
 
@@ -6,7 +6,7 @@ import mi_grg  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg import losses
+from mi_grg.training import losses
 
 
 # ------------------------------------------------------------------ float64 references
@@ -111,10 +111,10 @@ def test_projection_loss_is_l1_plus_weighted_dssim(variant, rng):
 
 
 def test_ssim_agrees_with_the_metric(variant, rng):
-    """Same window/padding/constants as mi_grg.metrics' SSIM (the evaluation metric)."""
-    metrics = pytest.importorskip("mi_grg.metrics")
+    """Same window/padding/constants as mi_grg.evaluation.metrics' SSIM (the evaluation metric)."""
+    metrics = pytest.importorskip("mi_grg.evaluation.metrics")
     if not hasattr(metrics, "ssim_2d"):
-        pytest.skip("mi_grg.metrics has no ssim_2d")
+        pytest.skip("mi_grg.evaluation.metrics has no ssim_2d")
     a = rng.random((24, 19)).astype(np.float32)
     b = np.clip(a + 0.1 * rng.normal(size=a.shape), 0, 1).astype(np.float32)
     assert float(losses.ssim(tensor(a), tensor(b))[0]) == pytest.approx(

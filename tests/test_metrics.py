@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from skimage.metrics import structural_similarity
 
-from mi_grg import metrics
+from mi_grg.evaluation import metrics
 
 
 def _smooth_pair(rng, shape):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import mi_grg  # noqa: F401
-from mi_grg.noise import NoiseModel
+from mi_grg.data.noise import NoiseModel
 
 
 @pytest.mark.parametrize("I0,std", [(1e4, 10.0), (200.0, 5.0), (1e3, 0.0)])

@@ -1,4 +1,4 @@
-"""Adam (mi_grg.optim) against a float64 NumPy Adam written from the PyTorch formula."""
+"""Adam (mi_grg.training.optim) against a float64 NumPy Adam written from the PyTorch formula."""
 import math
 
 import numpy as np
@@ -8,7 +8,7 @@ import mi_grg  # noqa: F401  (sets up LLVM before drjit)
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.optim import DEFAULT_LR, Adam, AdamError
+from mi_grg.training.optim import DEFAULT_LR, Adam, AdamError
 
 N = 7
 COLS = {"positions": 3, "raw_densities": 1, "raw_scales": 3, "raw_rotations": 4}
@@ -196,7 +196,7 @@ def test_state_dict_roundtrip(variant, rng):
 
 
 def test_from_train_config(variant):
-    config = pytest.importorskip("mi_grg.config")
+    config = pytest.importorskip("mi_grg.training.config")
     cfg = config.TrainConfig(lr_position=1e-3, lr_density=2e-2, lr_scale=3e-3,
                              lr_rotation=4e-3, lr_final_ratio=0.5)
     opt = Adam.from_train_config(cfg, max_steps=100)

@@ -8,8 +8,8 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
 import mi_grg  # noqa: F401  (sets up the environment before anything else)
-from mi_grg.geometry import Geometry
-from mi_grg.phantoms import PHANTOMS, EllipsoidPhantom, make_phantom
+from mi_grg.core.geometry import Geometry
+from mi_grg.data.phantoms import PHANTOMS, EllipsoidPhantom, make_phantom
 
 
 def sphere(centre, radius, density=1.0):

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import mi_grg  # noqa: F401  (sets up LLVM before mitsuba)
-from mi_grg.gaussians import Gaussians
-from mi_grg.ply import OPACITY_FLOOR, PlyError, SH_C0, load_ply, save_ply
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.data.ply import OPACITY_FLOOR, PlyError, SH_C0, load_ply, save_ply
 
 VIEWER_ORDER = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                 "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

@@ -1,4 +1,4 @@
-"""Radiative-Gaussian projector (mi_grg.projector, plugins/rg_projector.py).
+"""Radiative-Gaussian projector (mi_grg.core.projector, plugins/rg_projector.py).
 
 References are independent of the implementation: float64 NumPy line integrals on the
 rays of ``Geometry.pixel_rays_numpy`` (closed form written with Sigma^-1 = R S^-2 R^T and
@@ -12,7 +12,7 @@ import pytest
 from scipy.special import ndtr
 
 import mi_grg
-from mi_grg.geometry import circular_angles
+from mi_grg.core.geometry import circular_angles
 
 E_BIG = 9.0   # truncation error exp(-81/2) ~ 3e-18: compares the closed form itself
 
@@ -50,7 +50,7 @@ def as_arrays(g):
 
 
 def random_gaussians(rng, n, spread=0.6, smin=0.05, smax=0.3):
-    from mi_grg.gaussians import Gaussians
+    from mi_grg.core.gaussians import Gaussians
     q = rng.normal(size=(n, 4))
     return Gaussians.from_numpy(rng.uniform(-spread, spread, (n, 3)),
                                 rng.uniform(smin, smax, (n, 3)),
@@ -88,7 +88,7 @@ def truncation_bound(arrays, extent):
 # ---------------------------------------------------------------- accuracy
 @pytest.mark.parametrize("mode", ["cone", "parallel"])
 def test_matches_float64_bruteforce(variant, mode, rng):
-    from mi_grg.projector import DEFAULT_EXTENT, project
+    from mi_grg.core.projector import DEFAULT_EXTENT, project
     geo = geometry(mode)
     g = random_gaussians(rng, 25)
     arr = as_arrays(g)
@@ -109,7 +109,7 @@ def test_matches_float64_bruteforce(variant, mode, rng):
 
 
 def test_extent_tradeoff_is_monotone(rng):
-    from mi_grg.projector import project
+    from mi_grg.core.projector import project
     geo = geometry("cone", views=2)
     g = random_gaussians(rng, 15)
     arr = as_arrays(g)
@@ -125,7 +125,7 @@ def test_extent_tradeoff_is_monotone(rng):
 def test_linear_in_densities_and_adjoint(variant, rng):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.projector import project, project_dr
+    from mi_grg.core.projector import project, project_dr
     geo = geometry("cone", views=2)
     g = random_gaussians(rng, 12)
     n = len(g)
@@ -168,8 +168,8 @@ def _fd(fun, params, key, h=1e-6):
 def test_gradients_all_parameters_vs_finite_differences(variant, case, rng):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project_dr
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project_dr
     geo = geometry("parallel" if case == "parallel" else "cone", nd=(12, 16), views=2)
     if case == "near_source":   # one Gaussian straddling the source, one regular, one close
         src = 5.0 * np.array([math.cos(geo.angles[0]), math.sin(geo.angles[0]), 0.0])
@@ -208,7 +208,7 @@ def test_gradients_all_parameters_vs_finite_differences(variant, case, rng):
 def test_forward_mode_matches_backward(variant, rng):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.projector import project_dr
+    from mi_grg.core.projector import project_dr
     geo = geometry("cone", nd=(12, 16), views=2)
     src = 5.0 * np.array([math.cos(geo.angles[1]), math.sin(geo.angles[1]), 0.0])
     g = random_gaussians(rng, 4, spread=0.4)
@@ -240,8 +240,8 @@ def test_detector_plane_gradient(variant, rng):
     pixel size at the Gaussian's depth; and == FD of moving the Gaussian in that plane."""
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project_dr
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project_dr
     geo = geometry("cone", nd=(16, 20), views=2, offsets=False)
     pos, sc = np.array([[0.15, -0.1, 0.2]]), np.array([[0.2, 0.12, 0.3]])
     q = np.array([[0.9, 0.2, -0.3, 0.1]])
@@ -280,7 +280,7 @@ def test_detector_plane_gradient(variant, rng):
 
 # ---------------------------------------------------------------- hard cases
 def _needles(rng, n, s):
-    from mi_grg.gaussians import Gaussians
+    from mi_grg.core.gaussians import Gaussians
     q = rng.normal(size=(n, 4))
     return Gaussians.from_numpy(rng.uniform(-0.6, 0.6, (n, 3)), np.tile(s, (n, 1)),
                                 q / np.linalg.norm(q, axis=1, keepdims=True), np.full(n, 1e3))
@@ -288,7 +288,7 @@ def _needles(rng, n, s):
 
 @pytest.mark.parametrize("shape", ["needle", "pancake", "mixed"])
 def test_needles_and_near_singular_covariances(shape, rng):
-    from mi_grg.projector import DEFAULT_EXTENT, project
+    from mi_grg.core.projector import DEFAULT_EXTENT, project
     geo = geometry("cone", nd=(48, 64), views=3)
     s = {"needle": (0.3, 3e-5, 3e-5), "pancake": (0.3, 0.3, 3e-5), "mixed": (0.2, 2e-5, 0.05)}[shape]
     g = _needles(rng, 30, s)
@@ -306,8 +306,8 @@ def test_needles_and_near_singular_covariances(shape, rng):
 
 
 def test_large_line_integrals_and_far_from_origin(rng):
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project
     geo = geometry("cone", views=2)
     g = random_gaussians(rng, 20, smin=0.05, smax=0.2)
     dense = g.replace(densities=g.densities * 500.0)
@@ -333,8 +333,8 @@ def test_small_gaussians_far_from_origin(rng):
     at the default extent. Evaluating c - b^2/a of the closed form in float32 there is off
     by orders of magnitude; the projector's frame-relative form measured 3.9e-5 of the peak
     (2-7e-5 over view angles: half an ulp of a 1000-unit coordinate, 3e-5, is 6e-4 sigma)."""
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project
     a0 = 0.3
     centre = 1000.0 * np.array([np.cos(a0), np.sin(a0), 0.0])   # on the central ray
     geo = mi_grg.Geometry(mode="cone", DSD=2000.0, DSO=1500.0, nDetector=(48, 48),
@@ -357,8 +357,8 @@ def test_small_gaussians_far_from_origin(rng):
 
 def test_source_straddling_behind_and_at_source(variant):
     import drjit as dr
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project, project_dr
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project, project_dr
     geo = geometry("cone", views=3, offsets=False)
     a0 = geo.angles[0]
     n0 = np.array([math.cos(a0), math.sin(a0), 0.0])
@@ -404,8 +404,8 @@ def test_source_straddling_behind_and_at_source(variant):
 def test_grazing_rays_and_partial_footprints(rng):
     """End-on needles along rays, Gaussians hanging over the detector edge, footprints
     larger than the detector."""
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project
     geo = geometry("cone", nd=(20, 24), views=2, offsets=False)
     fr = geo.detector_frame()
     src, nrm = fr["source"][0], -fr["normal"][0]
@@ -430,8 +430,8 @@ def test_grazing_rays_and_partial_footprints(rng):
 def test_zero_gaussians_and_chunking(variant, rng, monkeypatch):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg import projector as P
-    from mi_grg.gaussians import Gaussians
+    from mi_grg.core import projector as P
+    from mi_grg.core.gaussians import Gaussians
     geo = geometry("cone", nd=(12, 16), views=3)
     empty = Gaussians(positions=mi.Point3f(), scales=mi.Vector3f(), rotations=mi.Vector4f(),
                       densities=mi.Float())
@@ -470,8 +470,8 @@ def test_zero_gaussians_and_chunking(variant, rng, monkeypatch):
 def test_invalid_inputs_are_rejected(variant):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.gaussians import Gaussians, GaussiansError
-    from mi_grg.projector import ProjectorError, project, project_dr
+    from mi_grg.core.gaussians import Gaussians, GaussiansError
+    from mi_grg.core.projector import ProjectorError, project, project_dr
     geo = geometry("cone", nd=(8, 8), views=1)
     good = Gaussians.from_numpy([[0.0, 0.0, 0.0], [0.1, 0.2, 0.0]], [[0.1, 0.1, 0.1]] * 2)
     with pytest.raises(GaussiansError, match="scales"):
@@ -504,8 +504,8 @@ def test_invalid_inputs_are_rejected(variant):
 def test_million_gaussians(rng):
     """10^6 Gaussians: finite, additive over subsets (chunking), exact on sampled pixels.
     Not marked slow (~4-9 s on the 2-core CPU), so the default test run covers it."""
-    from mi_grg.gaussians import Gaussians
-    from mi_grg.projector import project
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project
     n = 1_000_000
     geo = geometry("cone", nd=(64, 64), views=2)
     x = rng.normal(size=(n, 3))
@@ -557,7 +557,7 @@ def _scene(mi, geo, filename=None, extent=None):
 def test_integrator_renders_and_differentiates(variant, rng, tmp_path):
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.projector import project, project_dr
+    from mi_grg.core.projector import project, project_dr
     geo = geometry("cone", nd=(12, 16), views=2)
     g = random_gaussians(rng, 6)
     g.save_npz(tmp_path / "g.npz")
@@ -614,7 +614,7 @@ def test_integrator_renders_and_differentiates(variant, rng, tmp_path):
 
 def test_integrator_empty_and_inconsistent_parameters(variant):
     import mitsuba as mi
-    from mi_grg.projector import ProjectorError
+    from mi_grg.core.projector import ProjectorError
     geo = geometry("parallel", nd=(6, 8), views=2)
     scene = _scene(mi, geo)
     img = mi.render(scene)

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from mi_grg.case import Case
+from mi_grg.data.case import Case
 from mi_grg import __version__
 from mi_grg.methods import CODE_PATHS, code_version, get_method, reconstruct, register_method
 

@@ -2,7 +2,7 @@
 
 References: the float64 rays of ``Geometry.pixel_rays_numpy`` (whose conventions
 test_geometry.py checks by hand), the closed-form phantom line integrals of
-``mi_grg.phantoms`` and Mitsuba's own path tracer ``volpath``.
+``mi_grg.data.phantoms`` and Mitsuba's own path tracer ``volpath``.
 """
 import json
 import math
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.geometry import GeometryError, circular_angles
-from mi_grg.scene import (SCANNER_FIELDS, Scan, ScanError, load_mitsuba_scene, load_scan,
+from mi_grg.core.geometry import GeometryError, circular_angles
+from mi_grg.data.scene import (SCANNER_FIELDS, Scan, ScanError, load_mitsuba_scene, load_scan,
                           parse_scanner_fields, scan_to_xml, write_scan_xml)
 
 import drjit as dr  # noqa: E402  (after mi_grg: LLVM path)
@@ -196,7 +196,7 @@ def test_scene_with_sensor_and_integrator_only(tmp_path):
 
 def test_volpath_transmittance_matches_the_closed_form(variant):
     """Mitsuba's path tracer through ct_scanner + ct_phantom vs exact line integrals."""
-    from mi_grg.phantoms import make_phantom
+    from mi_grg.data.phantoms import make_phantom
     path = SCENES / "shepp_cone_volpath.xml"
     scene = load_mitsuba_scene(path)
     sensor = scene.sensors()[0]
@@ -348,7 +348,7 @@ def test_phantom_medium_errors(tmp_path):
 
 def test_phantom_medium_density_matches_numpy(tmp_path):
     """ct_phantom's Dr.Jit density == EllipsoidPhantom.density (float64 reference)."""
-    from mi_grg.phantoms import make_phantom
+    from mi_grg.data.phantoms import make_phantom
     text = _scene('<string name="offOrigin" value="0.1 -0.2 0.05"/>',
                   medium='<medium type="ct_phantom"><string name="phantom" value="shells"/>'
                          '<integer name="seed" value="2"/></medium>')

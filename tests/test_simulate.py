@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 
 import mi_grg  # noqa: F401
-from mi_grg.case import Case
-from mi_grg.geometry import Geometry, circular_angles
-from mi_grg.noise import NoiseModel
-from mi_grg.phantoms import make_phantom
-from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
+from mi_grg.data.case import Case
+from mi_grg.core.geometry import Geometry, circular_angles
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.phantoms import make_phantom
+from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 
 
 def corners_on_detector(geo: Geometry) -> bool:
@@ -82,7 +82,7 @@ def test_noise_free_case_is_exact(mode):
     np.testing.assert_array_equal(case.vol_gt, ph.voxelize(geo, supersample=2))
     assert case.vol_gt.shape == (16, 16, 16) and case.vol_gt.dtype == np.float32
     assert case.geometry is geo
-    assert case.info == {"source": "mi_grg.simulate", "phantom": "shepp", "n_ellipsoids": 10,
+    assert case.info == {"source": "mi_grg.data.simulate", "phantom": "shepp", "n_ellipsoids": 10,
                          "noise": None, "seed": 0, "supersample": 2, "mode": mode,
                          "n_voxel": [16, 16, 16], "n_detector": [24, 24], "n_train": 5,
                          "n_test": 5, "noise_seed": 0}

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.config import make_config
-from mi_grg.gaussians import Gaussians
-from mi_grg.noise import NoiseModel
-from mi_grg.projector import project
-from mi_grg.simulate import default_geometry, default_test_angles, simulate_case
-from mi_grg.train import Trainer
+from mi_grg.training.config import make_config
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.data.noise import NoiseModel
+from mi_grg.core.projector import project
+from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+from mi_grg.training.trainer import Trainer
 
 TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=20,
             holdout_every=3)
@@ -106,7 +106,7 @@ def test_r2_runs_without_any_graph_component(tiny_case):
 def test_graph_field_starts_from_the_same_field_as_the_plain_init(tiny_case):
     """De-Init densities are divided by the graph density scale, so the augmented field of
     the initial state equals the plain field of the same initial Gaussians."""
-    from mi_grg.graph import build_graph, graph_density_scale
+    from mi_grg.training.graph import build_graph, graph_density_scale
     with_graph = Trainer(tiny_case, make_config("gr", **TINY), progress=False)
     plain = Trainer(tiny_case, make_config("gr", use_graph_field=False, **TINY), progress=False)
     g1 = Gaussians.from_raw(with_graph.state.raw)
@@ -121,7 +121,7 @@ def test_graph_field_starts_from_the_same_field_as_the_plain_init(tiny_case):
 
 def test_de_init_filter_width_follows_the_grid(tiny_case, monkeypatch):
     """sigma_d reaches the filter as sigma_d x max(nVoxel) / sigma_d_grid voxels."""
-    import mi_grg.init as init
+    import mi_grg.training.init as init
     seen = []
     real = init.denoise_volume
     monkeypatch.setattr(init, "denoise_volume",
@@ -138,7 +138,7 @@ def test_de_init_filter_width_follows_the_grid(tiny_case, monkeypatch):
 
 
 def test_gaussian_cap_follows_the_voxel_count():
-    from mi_grg.train import gaussian_cap
+    from mi_grg.training.trainer import gaussian_cap
     geo64 = default_geometry(n=64, det=96, views=5)
     geo128 = default_geometry(n=128, det=192, views=5)
     assert gaussian_cap(make_config("gr"), geo64) == 64 ** 3 // 2
@@ -151,7 +151,7 @@ def test_gaussian_cap_follows_the_voxel_count():
 
 
 def test_iteration_rule_is_linear_from_64_and_a_square_root_below(tiny_case):
-    from mi_grg.train import iteration_rule
+    from mi_grg.training.trainer import iteration_rule
     its = {n: iteration_rule(default_geometry(n=n, det=n, views=2)) for n in (8, 48, 64, 128)}
     assert its == {8: 530, 48: 1299, 64: 1500, 128: 3000}
     # the largest edge counts: a 64 x 64 x 256 slab plans like 256^3
@@ -211,7 +211,7 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     assert info["kept_iteration"] == kept_at
     np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), seen[kept_at])
     assert not np.array_equal(seen[375], seen[500])       # the two candidates differ
-    # the config's patience reaches the stopper (default 2: mi_grg.early_stop says why)
+    # the config's patience reaches the stopper (default 2: mi_grg.training.early_stop says why)
     assert make_config("gr").stop_patience == 2
     assert Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, **TINY),
                    progress=False).stopper.patience == 3
@@ -227,7 +227,7 @@ def test_3d_psnr_is_logged_at_evaluations_when_there_is_a_ground_truth(tiny_case
 
 
 def test_config_edge_cases_are_errors(tiny_case):
-    from mi_grg.config import ConfigError
+    from mi_grg.training.config import ConfigError
     with pytest.raises(ConfigError, match="checkpoint_every"):
         make_config("gr", checkpoint_every=0)
     no_gt = dataclasses.replace(tiny_case, vol_gt=None)
@@ -238,7 +238,7 @@ def test_config_edge_cases_are_errors(tiny_case):
 @pytest.mark.parametrize("tv_extent, extent, want", [(3.0, 0.0, 3.0), (0.0, 4.0, 4.0)])
 def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent, extent, want):
     """The TV blocks use ``tv_extent`` (0: ``extent``); the final volume uses ``extent``."""
-    import mi_grg.voxelizer as vox
+    import mi_grg.core.voxelizer as vox
     seen, real = [], vox.voxelize_dr
 
     def spy(*args, **kwargs):
@@ -255,7 +255,7 @@ def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent,
 def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):
     """tv_every=2: the TV term enters on even iterations only, weighted 2 lambda_tv."""
     import mitsuba as mi
-    import mi_grg.losses as losses
+    import mi_grg.training.losses as losses
     calls = []
 
     def unit_tv(vol):          # a constant TV value: the loss difference is its weight
@@ -282,7 +282,7 @@ def test_loss_plot_smooths_the_alternating_tv_term(tmp_path, monkeypatch):
     """With tv_every = 2 the loss alternates; the plot's smoothed curve is the running mean
     (for 1, 3, 1, 3, ... it is 2 within one window's imbalance), and short logs still plot."""
     import matplotlib.axes
-    from mi_grg.train import LOSS_PLOT_WINDOW, plot_log
+    from mi_grg.training.trainer import LOSS_PLOT_WINDOW, plot_log
     curves = []
     orig = matplotlib.axes.Axes.semilogy
 
@@ -307,7 +307,7 @@ def test_rebuild_keeps_field_carries_the_multiplier(tiny_case, monkeypatch, keep
     the densities so that rho_new x scale_new = rho_densified x scale_old[source]; off, the
     densities are left as densified."""
     import mitsuba as mi
-    import mi_grg.train as train
+    import mi_grg.training.trainer as train
     calls = []
     real = train.carry_density_scale
 
@@ -336,7 +336,7 @@ def test_graph_field_without_rebuilds_trains_like_the_plain_field(tiny_case):
     moved them (measured: 0.3 % of the change). This checks a property of the method (the
     graph field is a reparametrisation between rebuilds; docs/benchmarks.md) more than the
     code: Adam's per-parameter normalisation would hide many scale errors in gradients."""
-    from mi_grg.graph import build_graph, graph_density_scale
+    from mi_grg.training.graph import build_graph, graph_density_scale
     common = dict(n_points=400, holdout_every=0, lambda_lap=0.0, use_pga=False, iterations=40)
     geo = tiny_case.geometry
     proj = {}

@@ -1,4 +1,4 @@
-"""mi_grg.volume_phantom: fine-step trilinear projections of voxel volumes, ground truth on a
+"""mi_grg.data.volume_phantom: fine-step trilinear projections of voxel volumes, ground truth on a
 coarser grid, cases from data files. References: closed-form chord lengths (float64 slab
 method), the closed-form line integral of a Gaussian blob, scipy's map_coordinates for the
 trilinear object, and step halving."""
@@ -10,9 +10,9 @@ from scipy.ndimage import map_coordinates
 from scipy.special import erf
 
 import mi_grg  # noqa: F401  (first: sets up LLVM for Dr.Jit)
-from mi_grg.geometry import Geometry, circular_angles
-from mi_grg.noise import NoiseModel
-from mi_grg.volume_phantom import (DATA_ENV, average_to_grid, block_average, data_dir,
+from mi_grg.core.geometry import Geometry, circular_angles
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.volume_phantom import (DATA_ENV, average_to_grid, block_average, data_dir,
                                    simulate_volume_case, volume_line_integrals)
 
 
@@ -178,7 +178,7 @@ def test_shared_volume_fits_default_detector():
         pytest.skip("no shared data directory")
     if not path.is_file():
         pytest.skip("bone_128.npy not present")
-    from mi_grg.simulate import default_geometry
+    from mi_grg.data.simulate import default_geometry
     geo = default_geometry(n=16, det=32, views=2)
     proj = volume_line_integrals(path, geo, oversample=1)
     border = np.concatenate([proj[:, 0].ravel(), proj[:, -1].ravel(), proj[:, :, 0].ravel(),

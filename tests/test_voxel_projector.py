@@ -1,4 +1,4 @@
-"""Joseph forward projector and its exact adjoint (mi_grg.voxel_projector).
+"""Joseph forward projector and its exact adjoint (mi_grg.classical.joseph).
 
 References: adjoint dot-product test; closed-form chord lengths of a ball and of the volume
 box (float64 NumPy); RTK's JosephForwardProjectionImageFilter (itk-rtk, test-only) on the
@@ -7,9 +7,9 @@ same geometry. The RTK geometry mapping below is also used by test_fdk.py and th
 import numpy as np
 import pytest
 
-from mi_grg.geometry import Geometry, circular_angles
-from mi_grg import voxel_projector as vp
-from mi_grg.voxel_projector import back_project, forward_project, forward_project_dr
+from mi_grg.core.geometry import Geometry, circular_angles
+from mi_grg.classical import joseph as vp
+from mi_grg.classical.joseph import back_project, forward_project, forward_project_dr
 
 # itk's SWIG wrappers emit hundreds of these on import
 pytestmark = pytest.mark.filterwarnings("ignore:builtin type:DeprecationWarning")
@@ -205,7 +205,7 @@ def test_forward_projection_agrees_with_rtk_joseph():
     dominant axis), so the two agree to float32 rounding, not merely to the discretisation
     error (which is ~8 % here against the exact projections of the thin-skulled phantom)."""
     itk, rtk = rtk_or_skip()
-    from mi_grg.phantoms import make_phantom
+    from mi_grg.data.phantoms import make_phantom
     geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(40, 48), sDetector=(3.5, 4.2),
                    nVoxel=(32, 30, 28), sVoxel=(2.0, 1.9, 1.8), angles=circular_angles(7) + 0.1)
     vol = make_phantom("shepp").voxelize(geo, 2)

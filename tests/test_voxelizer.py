@@ -6,10 +6,10 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.gaussians import Gaussians
-from mi_grg.geometry import Geometry
-from mi_grg import voxelizer
-from mi_grg.voxelizer import VoxelizerError, voxelize, voxelize_dr, DEFAULT_EXTENT
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.geometry import Geometry
+from mi_grg.core import voxelizer
+from mi_grg.core.voxelizer import VoxelizerError, voxelize, voxelize_dr, DEFAULT_EXTENT
 
 
 # ---------------------------------------------------------------- float64 references
@@ -89,7 +89,7 @@ def geo():
 
 # ---------------------------------------------------------------- values
 def test_default_extent_is_shared_with_the_projector():
-    from mi_grg.projector import DEFAULT_EXTENT as projector_extent
+    from mi_grg.core.projector import DEFAULT_EXTENT as projector_extent
     assert DEFAULT_EXTENT == projector_extent
 
 
@@ -173,7 +173,7 @@ def test_rejects_bad_input(geo, rng):
     with pytest.raises(VoxelizerError, match="extent"):
         voxelize(g, geo, extent=-1.0)
     # the projector's checks: zero / non-unit quaternions, negative densities and scales
-    from mi_grg.projector import QUATERNION_TOL, ProjectorError, project
+    from mi_grg.core.projector import QUATERNION_TOL, ProjectorError, project
     q = np.asarray(g.numpy()["rotations"], np.float64)
     tol = QUATERNION_TOL
 
@@ -211,7 +211,7 @@ def test_rejects_bad_input(geo, rng):
 def test_rotations_are_normalised_internally(geo, rng):
     """Quaternions within QUATERNION_TOL of unit length give the volume of their normalised
     selves, and the rotation gradient has no radial component (tangent to the sphere)."""
-    from mi_grg.projector import QUATERNION_TOL
+    from mi_grg.core.projector import QUATERNION_TOL
     params = make_params(rng, 6, geo, smin=0.12, smax=0.3)
     unit = voxelize(to_gaussians(params), geo)
     stretch = 1 + 0.8 * QUATERNION_TOL * np.array([1, -1, 1, -1, 1, -1.0])[:, None]
@@ -317,7 +317,7 @@ def test_forward_mode_equals_reverse_mode(geo, rng):
 # ---------------------------------------------------------------- line integrals
 def _integrate_volume(vol, geometry):
     """Line integrals of the trilinear interpolant between voxel centres (dr.dda)."""
-    from mi_grg.crosscheck import integrate_volume
+    from mi_grg.evaluation.crosscheck import integrate_volume
     return integrate_volume(vol, geometry)
 
 
@@ -331,7 +331,7 @@ def test_voxelize_then_integrate_converges_to_closed_form(rng):
     g = to_gaussians(params)
     ref = closed_form_line_integrals(params, base)
     try:
-        from mi_grg.projector import project
+        from mi_grg.core.projector import project
     except ImportError:
         project = None
     if project is not None:  # the projector's closed form agrees with ours

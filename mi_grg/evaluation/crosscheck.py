@@ -8,11 +8,11 @@ Bernoulli mean with standard error sqrt(T (1 - T) / spp). Two routes:
 
 * ``gaussian``: the medium is ``gaussian_medium`` (the Gaussians summed directly at every
   lookup, no voxelisation); reference: exp(-projection) of the closed-form projector
-  (``mi_grg.projector``). The projector truncates each Gaussian where the ray's
+  (``mi_grg.core.projector``). The projector truncates each Gaussian where the ray's
   Mahalanobis distance exceeds ``extent`` (2-D), the medium where the point's does (3-D);
   both differ from the untruncated field by < rho exp(-extent^2/2) (4e-5 rho at 4.5),
   far below the Monte Carlo noise of any practical spp.
-* ``grid``: the voxelised field (``mi_grg.voxelizer``) as a ``gridvolume`` in a
+* ``grid``: the voxelised field (``mi_grg.core.voxelizer``) as a ``gridvolume`` in a
   ``heterogeneous`` medium. Its reference uses the SAME voxelised field: exp(-line
   integral of its trilinear interpolant), computed exactly by ``dr.dda.integrate`` on the
   edge-padded grid (``gridvolume`` clamps at the border) over the volume box. The
@@ -33,8 +33,8 @@ import numpy as np
 
 import mitsuba as mi
 
-from .gaussians import Gaussians
-from .geometry import Geometry
+from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.geometry import Geometry
 
 #: Largest number of (pixel, sample) lanes rendered in one ``mi.render`` pass.
 MAX_LANES = 1 << 24
@@ -95,7 +95,7 @@ def integrate_volume(volume, geometry: Geometry, angles=None) -> np.ndarray:
 
 def closed_form_projection(gaussians: Gaussians, geometry: Geometry) -> np.ndarray:
     """Untruncated whole-line integrals [view, v, u] in float64 NumPy (fallback reference
-    when ``mi_grg.projector`` is missing; O(N x pixels)):
+    when ``mi_grg.core.projector`` is missing; O(N x pixels)):
     int rho exp(-(a t^2 + 2 b t + c)/2) dt = rho sqrt(2 pi / a) exp(-(c - b^2/a)/2)."""
     g = gaussians.numpy()
     pos, sc, q, rho = (g[k].astype(np.float64) for k in
@@ -120,7 +120,7 @@ def closed_form_projection(gaussians: Gaussians, geometry: Geometry) -> np.ndarr
 def projection(gaussians: Gaussians, geometry: Geometry, extent=None) -> np.ndarray:
     """Line integrals [view, v, u] from the projector (closed form, float64 fallback)."""
     try:
-        from .projector import project, DEFAULT_EXTENT
+        from mi_grg.core.projector import project, DEFAULT_EXTENT
     except ImportError:
         return closed_form_projection(gaussians, geometry)
     return np.asarray(project(gaussians, geometry, extent=DEFAULT_EXTENT if extent is None
@@ -136,14 +136,14 @@ def _box_transform(lo, hi):
 
 
 def _register_and_load(d: dict):
-    from .variant import set_variant
+    from mi_grg.variant import set_variant
     set_variant(mi.variant())   # registers ct_scanner and gaussian_medium for this variant
     return mi.load_dict(d)
 
 
 def _scene(geometry: Geometry, medium, lo, hi):
     """volpath scene: ct_scanner, constant emitter (I0 = 1), the medium in a null cube."""
-    from .scene import Scan, scanner_fields
+    from mi_grg.data.scene import Scan, scanner_fields
     return _register_and_load({
         "type": "scene",
         # null scattering does not count as depth; albedo 0 ends a path at its first real
@@ -237,7 +237,7 @@ def _load(scene) -> tuple:
         if not isinstance(gaussians, Gaussians) or not isinstance(geometry, Geometry):
             raise TypeError("render_crosscheck takes a scene path or (Gaussians, Geometry)")
         return gaussians, geometry
-    from .scene import load_scan
+    from mi_grg.data.scene import load_scan
     path = Path(scene)
     scan = load_scan(path)  # resolves relative file names against the scene's folder
     obj = scan.object
@@ -270,7 +270,7 @@ def render_crosscheck(scene, spp: int, out_dir, seed: int = 0, extent=None,
         standard errors, z-scores) against its reference, the seconds taken, and
         ``grid_vs_projector`` (the voxelisation error of the grid route's reference).
     """
-    from .voxelizer import DEFAULT_EXTENT, voxelize
+    from mi_grg.core.voxelizer import DEFAULT_EXTENT, voxelize
     spp = int(spp)
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")

@@ -25,7 +25,7 @@ Columns are processed in chunks of at most ``chunk_pairs`` (Gaussian, voxel) pai
 anywhere, also inside one Gaussian's box), so memory stays bounded by the volume plus one
 chunk of columns, for 256^3 volumes and 10^6 Gaussians alike.
 
-Truncation: ``DEFAULT_EXTENT`` is the projector's (``mi_grg.projector``) so that both use
+Truncation: ``DEFAULT_EXTENT`` is the projector's (``mi_grg.core.projector``) so that both use
 one number; the projector cuts a Gaussian where the *ray's* Mahalanobis distance exceeds
 it, the voxelizer where the *point's* does. Both differ from the untruncated field by at
 most rho exp(-extent^2/2) (4e-5 rho at 4.5).
@@ -33,7 +33,7 @@ most rho exp(-extent^2/2) (4e-5 rho at 4.5).
 Derivatives (``voxelize_dr``) flow to positions, scales, rotations, densities and
 ``density_scale`` through a ``dr.CustomOp`` whose forward/backward passes recompute the
 pairs chunk by chunk with the analytic derivatives of rho exp(-m^2/2) with respect to
-rho, p and Sigma^-1; Sigma^-1 comes from ``mi_grg.gaussians.inverse_covariance`` under
+rho, p and Sigma^-1; Sigma^-1 comes from ``mi_grg.core.gaussians.inverse_covariance`` under
 Dr.Jit's normal AD. The backward pass accumulates each column's gradient in registers
 (one atomic per column and parameter, not per voxel). The truncation boundary is treated
 as fixed (its jump is rho exp(-extent^2/2)).
@@ -52,11 +52,11 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .gaussians import Gaussians, inverse_covariance, rotation_matrix
-from .geometry import Geometry
+from mi_grg.core.gaussians import Gaussians, inverse_covariance, rotation_matrix
+from mi_grg.core.geometry import Geometry
 # one truncation rule, one set of input checks and one quaternion normalisation for the
 # projector and the voxelizer
-from .projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
+from mi_grg.core.projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -94,7 +94,7 @@ def _check_block(block, geometry: Geometry):
 
 def _check_inputs(gaussians, extent, density_scale):
     if not isinstance(gaussians, Gaussians):
-        raise VoxelizerError(f"gaussians must be mi_grg.gaussians.Gaussians, "
+        raise VoxelizerError(f"gaussians must be mi_grg.core.gaussians.Gaussians, "
                              f"got {type(gaussians).__name__}")
     extent = float(extent)
     if not (math.isfinite(extent) and extent > 0):

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Geometry
+from mi_grg.core.geometry import Geometry
 
 PHANTOMS = ("shepp", "needles", "shells")
 

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .case import Case
-from .geometry import Geometry, GeometryError
+from mi_grg.data.case import Case
+from mi_grg.core.geometry import Geometry, GeometryError
 
 META_NAME = "meta_data.json"
 VOL_NAME = "vol_gt.npy"

@@ -8,7 +8,7 @@ All return an ``mi.Float`` of width 1 (a scalar that ``dr.backward`` accepts).
   applied like ``conv2d(padding=5)`` -- ZERO padding, same-size map -- with the constants
   C1 = 0.01^2, C2 = 0.03^2 (data range 1; their projections and volumes are in [0, ~1]).
   The SSIM map is averaged over every pixel of every view, the border included. This is
-  the same SSIM as ``mi_grg.metrics`` (the evaluation metric) but differentiable.
+  the same SSIM as ``mi_grg.evaluation.metrics`` (the evaluation metric) but differentiable.
 * ``tv_3d``: R2-Gaussian's ``tv_3d_loss``: the SUM of ABSOLUTE forward differences along
   x, y and z, divided (``reduction="mean"``, what their train.py uses) by the number of
   differences, (X-1)YZ + X(Y-1)Z + XY(Z-1).

@@ -1,6 +1,6 @@
 """Radiative-Gaussian X-ray projector: exact line integrals of 3-D Gaussians, in Dr.Jit.
 
-Model (``mi_grg.gaussians``): sigma(x) = sum_i rho_i exp(-1/2 (x - p_i)^T Sigma_i^-1 (x - p_i)).
+Model (``mi_grg.core.gaussians``): sigma(x) = sum_i rho_i exp(-1/2 (x - p_i)^T Sigma_i^-1 (x - p_i)).
 The projection of pixel (view, v, u) is the line integral of sigma along that pixel's TRUE
 ray (cone beam: from the source through the pixel centre; parallel beam: the whole line
 through the pixel centre along the beam), in the geometry's length unit (density x length,
@@ -62,8 +62,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .gaussians import Gaussians, rotation_matrix
-from .geometry import Geometry
+from mi_grg.core.gaussians import Gaussians, rotation_matrix
+from mi_grg.core.geometry import Geometry
 
 __all__ = ["DEFAULT_EXTENT", "ProjectorError", "ViewFrames", "project", "project_dr",
            "view_frames"]
@@ -1035,7 +1035,7 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
         mi.TensorXf [view, v, u], line integrals (density x length).
     """
     if not isinstance(gaussians, Gaussians):
-        raise ProjectorError("gaussians must be a mi_grg.gaussians.Gaussians, got "
+        raise ProjectorError("gaussians must be a mi_grg.core.gaussians.Gaussians, got "
                              f"{type(gaussians).__name__}")
     if not isinstance(geometry, Geometry):
         raise ProjectorError(f"geometry must be a mi_grg.Geometry, got {type(geometry).__name__}")

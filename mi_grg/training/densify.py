@@ -9,7 +9,7 @@ term added to the densification gradient. Every ``interval`` iterations in the w
    The first term is R2-Gaussian's averaged detector-plane gradient norm, accumulated by
    ``accumulate`` over the N_i views in which Gaussian i was visible since the last
    densification (0 if never visible). The second is PGA's graph term, computed by the
-   caller (``mi_grg.graph.mean_abs_density_difference``) on the current graph; it is
+   caller (``mi_grg.training.graph.mean_abs_density_difference``) on the current graph; it is
    added once to the view average, which equals the paper's per-view sum
    (Eq. 16) averaged over views. ``use_graph=False`` drops it (R2-Gaussian).
 2. Candidates: g_i >= tau_pos. Default tau_pos = 5e-5, R2-Gaussian's
@@ -59,8 +59,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .gaussians import Gaussians, rotation_matrix
-from .optim import Adam
+from mi_grg.core.gaussians import Gaussians, rotation_matrix
+from mi_grg.training.optim import Adam
 
 RAW_KEYS = ("positions", "raw_scales", "raw_rotations", "raw_densities")
 
@@ -103,10 +103,10 @@ class DensifyConfig:
 
     @classmethod
     def from_train_config(cls, cfg) -> "DensifyConfig":
-        """From a ``mi_grg.config.TrainConfig`` (its field names differ); other fields
+        """From a ``mi_grg.training.config.TrainConfig`` (its field names differ); other fields
         keep their defaults. The schedule and ``max_count`` are the config's as written:
         the trainer scales the window to the run's length and lowers the cap to
-        ``mi_grg.train.gaussian_cap`` (``max_gaussians_per_voxel`` needs the grid)."""
+        ``mi_grg.training.trainer.gaussian_cap`` (``max_gaussians_per_voxel`` needs the grid)."""
         return cls(interval=cfg.densify_interval, start=cfg.densify_start,
                    stop=cfg.densify_stop, tau_pos=cfg.densify_grad_threshold,
                    lambda_g=cfg.lambda_g, use_graph=cfg.use_pga, max_count=cfg.max_gaussians)

@@ -27,8 +27,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .geometry import Geometry
-from .voxel_projector import check_angles, check_projections
+from mi_grg.core.geometry import Geometry
+from mi_grg.classical.joseph import check_angles, check_projections
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hann")
 

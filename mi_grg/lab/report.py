@@ -2,7 +2,7 @@
 
     mi-grg report --out results/cpu --report docs/results.md
 
-Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.experiments``) and each run's
+Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.lab.experiments``) and each run's
 ``metrics.json`` / ``train_log.csv`` / ``progress_log.csv``; writes the markdown file and
 its PNGs under ``<report dir>/img/results/``. Only numbers found in those files appear in
 our tables; a missing or failed run shows as "—". The paper's numbers are transcribed from
@@ -306,7 +306,7 @@ def seeds_table(rows, key: str = "psnr_3d") -> tuple[list, list, dict]:
 
 # ---------------------------------------------------------------------------- plots
 def _plt():
-    from .plotting import _agg
+    from mi_grg.evaluation.plotting import _agg
     return _agg()
 
 
@@ -330,8 +330,8 @@ def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0):
     PSNR or None, the best iteration); ``drop`` and ``patience`` default to TrainConfig's
     stop_drop and stop_patience. Like training, only evaluations at iterations >= ``start``
     (the end of densification) are judged."""
-    from .config import TrainConfig
-    from .early_stop import EarlyStopper
+    from mi_grg.training.config import TrainConfig
+    from mi_grg.training.early_stop import EarlyStopper
     cfg = TrainConfig()
     st = EarlyStopper(drop=cfg.stop_drop if drop is None else drop,
                       patience=cfg.stop_patience if patience is None else patience)
@@ -621,7 +621,7 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
-    from .experiments import stale_keys
+    from mi_grg.lab.experiments import stale_keys
     older = {}
     for exp, rows in all_rows.items():
         for r in rows:
@@ -637,7 +637,7 @@ def _setup_md(all_rows: dict) -> str:
     if sart:
         lines += ["", "Iterative baselines: " + ", ".join(
             f"{m} n_iter={n}" for m, n in sorted(sart, key=str)) +
-            " (\"default\" = the method's default, see mi_grg.iterative)."]
+            " (\"default\" = the method's default, see mi_grg.classical.iterative)."]
     return "\n".join(lines)
 
 
@@ -693,7 +693,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     t2 = all_rows.get("table2")
     md += ["## Table 2: ablation", ""]
     if t2:
-        from .experiments import table2_variants
+        from mi_grg.lab.experiments import table2_variants
         h, b = _runs_summary(t2, [run for run, *_ in table2_variants()])
         md += [_md_table(h, b), ""]
     else:
@@ -726,7 +726,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     it = all_rows.get("iterations")
     md += ["## Iteration analysis", ""]
     if it:
-        from .config import TrainConfig
+        from mi_grg.training.config import TrainConfig
         tc = TrainConfig()
         md += ["Held-out-view PSNR (the early-stopping signal, no ground truth) and 3-D PSNR "
                "(when logged) against iteration. Solid: the run with early stopping disabled "

@@ -22,7 +22,7 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 
-from .early_stop import KEEP_STATES
+from mi_grg.training.early_stop import KEEP_STATES
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
@@ -33,7 +33,7 @@ PRESETS = {
 
 # Fields added after runs had been made, with the value that reproduces the behaviour
 # from before they existed: a finished run whose recorded config lacks one of them was
-# made with this value (mi_grg.experiments.stale_keys). A field added with a default
+# made with this value (mi_grg.lab.experiments.stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
 ADDED_LATER = {"rebuild_keeps_field": False}
 
@@ -66,7 +66,7 @@ class TrainConfig:
     rebuild_keeps_field: bool = False  # after densification, rescale the densities so that
                                    # the rebuilt graph alone does not change the field:
                                    # each kernel keeps its source's multiplier 1 + sum w
-                                   # (why: mi_grg.train.carry_density_scale)
+                                   # (why: mi_grg.training.trainer.carry_density_scale)
     lambda_lap: float = 8e-4       # graph Laplacian weight (raw sum x 50k / N, see train)
     # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
     # eval_every) is the paper's for 30k iterations and is scaled to the run's length
@@ -105,9 +105,9 @@ class TrainConfig:
     eval_every: int = 500
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row
-                                   # (1: the paper's rule; why 2: mi_grg.early_stop)
+                                   # (1: the paper's rule; why 2: mi_grg.training.early_stop)
     keep_state: str = "latest"     # state kept: "latest" within stop_drop of the best
-                                   # held-out PSNR, or "best" (why: mi_grg.early_stop)
+                                   # held-out PSNR, or "best" (why: mi_grg.training.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no

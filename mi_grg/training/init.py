@@ -48,7 +48,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .gaussians import Gaussians
+from mi_grg.core.gaussians import Gaussians
 
 BORDER_MODES = ("reflect", "nearest", "constant")
 SCALE_BOUNDS = (0.0005, 0.5)   # x max(sVoxel); R2-Gaussian's scale_min / scale_max

@@ -8,7 +8,7 @@
     early stop, keeping the latest state within the stop margin of the best (or the best:
     ``keep_state``).
 
-Every component is switched by ``TrainConfig`` (``mi_grg.config``), so one loop runs
+Every component is switched by ``TrainConfig`` (``mi_grg.training.config``), so one loop runs
 R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
 Runs write checkpoints that ``resume=True`` continues from: an interrupted run loses at
 most ``checkpoint_every`` iterations.
@@ -31,10 +31,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .case import Case
-from .config import TrainConfig, make_config
-from .early_stop import EarlyStopper
-from .gaussians import Gaussians
+from mi_grg.data.case import Case
+from mi_grg.training.config import TrainConfig, make_config
+from mi_grg.training.early_stop import EarlyStopper
+from mi_grg.core.gaussians import Gaussians
 
 # The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
 # we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
@@ -222,7 +222,7 @@ def write_log(out: Path, log: list) -> None:
 
 def plot_log(path, log: list, kept_iteration: int | None = None) -> None:
     """Loss, held-out PSNR (and 3-D PSNR when known) and Gaussian count per iteration."""
-    from .plotting import _agg
+    from mi_grg.evaluation.plotting import _agg
     plt = _agg()
     it = [r["iteration"] for r in log]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
@@ -264,8 +264,8 @@ class Trainer:
 
     def __init__(self, case: Case, cfg: TrainConfig, out_dir=None, progress: bool = True,
                  resume: bool = False):
-        from .densify import DensifyConfig, PGADensifier
-        from .optim import Adam
+        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.optim import Adam
         self.case, self.cfg, self.progress = case, cfg, progress
         self.out = Path(out_dir) if out_dir is not None else None
         if self.out is not None:
@@ -324,8 +324,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
-        from .fdk import fdk
-        from .init import init_gaussians, sigma_d_voxels
+        from mi_grg.classical.fdk import fdk
+        from mi_grg.training.init import init_gaussians, sigma_d_voxels
         geo, cfg = self.case.geometry, self.cfg
         fit_geo = geo.with_angles(geo.angles[self.fit_idx])
         vol = fdk(self.case.train[self.fit_idx], fit_geo)
@@ -341,7 +341,7 @@ class Trainer:
             # The graph-augmented field multiplies each kernel's density by 1 + sum_i w_ij
             # (about 1 + k/2 e^-1 .. 1 + k); the init densities were calibrated for the plain
             # field, so divide by that factor: the initial field is the same either way.
-            from .graph import build_graph, graph_density_scale
+            from mi_grg.training.graph import build_graph, graph_density_scale
             scale = graph_density_scale(build_graph(g.positions, k=cfg.k, s=cfg.graph_s or None))
             g = g.replace(densities=g.densities / scale)
             info["graph_field_init_divisor_mean"] = float(dr.mean(scale)[0]
@@ -351,7 +351,7 @@ class Trainer:
     def _rebuild_graph(self, positions):
         """Graph of ``positions`` (the state remembers them, so a resumed run rebuilds the
         very same graph rather than one of later positions)."""
-        from .graph import build_graph, graph_density_scale
+        from mi_grg.training.graph import build_graph, graph_density_scale
         self._density_scale = None
         if not self.uses_graph:
             self.graph = None
@@ -365,14 +365,14 @@ class Trainer:
             dr.eval(self._density_scale)
 
     def _project(self, g, angles, density_scale, means2d=None):
-        from .projector import project_dr
+        from mi_grg.core.projector import project_dr
         return project_dr(g, self.case.geometry, angles=angles, extent=self.extent,
                           density_scale=density_scale, means2d=means2d)
 
     def _heldout_psnr(self, raw) -> float | None:
         if len(self.held_idx) == 0:
             return None
-        from .metrics import psnr_proj
+        from mi_grg.evaluation.metrics import psnr_proj
         with dr.suspend_grad():
             g = Gaussians.from_raw(raw)
             img = self._project(g, self.case.geometry.angles[self.held_idx],
@@ -386,12 +386,12 @@ class Trainer:
         Without arguments: the returned state with the graph-field density scale it was
         trained with (so the volume is the field that was fitted to the projections).
         """
-        from .voxelizer import voxelize
+        from mi_grg.core.voxelizer import voxelize
         if raw is None:
             raw, density_scale = self.state.raw, self.final_density_scale
         g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
         if density_scale is None and self.cfg.use_graph_field:
-            from .graph import build_graph, graph_density_scale
+            from mi_grg.training.graph import build_graph, graph_density_scale
             density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
                                                             s=self.cfg.graph_s or None))
         return voxelize(g, self.case.geometry, extent=self.extent, density_scale=density_scale)
@@ -400,8 +400,8 @@ class Trainer:
     def run(self) -> dict:
         from tqdm import tqdm
 
-        from .graph import laplacian_loss, mean_abs_density_difference
-        from .losses import projection_loss, tv_3d
+        from mi_grg.training.graph import laplacian_loss, mean_abs_density_difference
+        from mi_grg.training.losses import projection_loss, tv_3d
         cfg, geo, st = self.cfg, self.case.geometry, self.state
         raw = {k: dr.detach(v) for k, v in st.raw.items()}
         for v in raw.values():
@@ -435,7 +435,7 @@ class Trainer:
             loss = projection_loss(pred, target, cfg.lambda_ssim)
             if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
                 start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
-                from .voxelizer import voxelize_dr
+                from mi_grg.core.voxelizer import voxelize_dr
                 vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
                                   density_scale=ds)
                 loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
@@ -472,7 +472,7 @@ class Trainer:
             if want_3d:
                 # Research logging: not counted in the training time.
                 t3 = time.perf_counter()
-                from .metrics import psnr_3d
+                from mi_grg.evaluation.metrics import psnr_3d
                 row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
                                                self.case.vol_gt))
                 t_start += time.perf_counter() - t3
@@ -530,13 +530,13 @@ class Trainer:
                      if summary["kept_iteration"] > 0 else None)
             g = Gaussians.from_raw(final)
             g.save_npz(self.out / "gaussians.npz")
-            from .ply import save_ply
+            from mi_grg.data.ply import save_ply
             save_ply(g, self.out / "gaussians.ply")
         return summary
 
     def _refit(self, raw, n_iter: int):
         """Brief refit on all views (held-out ones included) after early stopping."""
-        from .losses import projection_loss
+        from mi_grg.training.losses import projection_loss
         geo, cfg = self.case.geometry, self.cfg
         nv, nu = geo.nDetector
         raw = {k: dr.detach(v) for k, v in raw.items()}
@@ -564,7 +564,7 @@ def _train_method(method: str):
         return trainer.volume(), summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "
-                   "TrainConfig fields (mi_grg.config), config (an XML file), resume, "
+                   "TrainConfig fields (mi_grg.training.config), config (an XML file), resume, "
                    "progress, out_dir.")
     return run
 

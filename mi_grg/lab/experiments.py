@@ -60,7 +60,7 @@ CATEGORIES = {"HO": "human organs / organ-like", "BS": "biological specimens",
               "AO": "artificial objects"}
 CASE_FIELDS = ("name", "category", "source", "views", "test_views", "n", "det", "mode",
                "noise", "seed")
-TRAINED = ("r2", "gr")               # methods configured by mi_grg.config.TrainConfig
+TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.config.TrainConfig
 CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve"}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
 
@@ -75,7 +75,7 @@ class CaseSpec:
     """One simulated scan (all sizes in voxels / pixels; noise as NoiseModel fields)."""
     name: str
     category: str
-    source: str                 # phantom name (mi_grg.phantoms) or a .npy volume
+    source: str                 # phantom name (mi_grg.data.phantoms) or a .npy volume
     views: int
     test_views: int
     n: int
@@ -133,7 +133,7 @@ def _int_field(c: dict, key: str, where: str, minimum: int) -> int:
 
 def load_suite(path) -> Suite:
     """Read and validate a suite JSON file (see experiments/README.md for the format)."""
-    from .phantoms import PHANTOMS
+    from mi_grg.data.phantoms import PHANTOMS
     path = Path(path)
     try:
         raw = json.loads(path.read_text())
@@ -174,7 +174,7 @@ def load_suite(path) -> Suite:
         if noise is not None:
             if not isinstance(noise, dict):
                 raise SuiteError(f"{where}.noise must be null or {{I0, electronic_std}}")
-            from .noise import NoiseModel
+            from mi_grg.data.noise import NoiseModel
             try:
                 NoiseModel(**noise)
             except (TypeError, ValueError) as e:
@@ -246,7 +246,7 @@ def register_experiment_methods(extra: dict | None = None) -> None:
     """Register the curve-logging wrappers (sart-curve, asd-pocs-curve) and a suite's
     ``extra_methods`` ({name: "module:function"}) with ``mi_grg.methods``."""
     import importlib
-    from .methods import METHODS, register_method
+    from mi_grg.methods import METHODS, register_method
     for base, name in CURVE_METHODS.items():
         if name not in METHODS:
             register_method(name, _curve_method(base))
@@ -256,17 +256,17 @@ def register_experiment_methods(extra: dict | None = None) -> None:
 
 
 def _train_fields() -> set:
-    from .config import TrainConfig
+    from mi_grg.training.config import TrainConfig
     return {f.name for f in dataclasses.fields(TrainConfig)}
 
 
 def canonical_options(method: str, options: dict) -> dict:
     """``options`` without entries equal to the method's defaults (so that e.g. gr with
     k=6 and gr with no options are recognised as the same run)."""
-    from .methods import get_method
+    from mi_grg.methods import get_method
     options = dict(options)
     if method in TRAINED:
-        from .config import make_config
+        from mi_grg.training.config import make_config
         base = make_config(method).to_dict()
         cfg = make_config(method, **{k: v for k, v in options.items() if k in base})
         return {k: v for k, v in options.items()
@@ -300,7 +300,7 @@ def _log3d_options(ecfg: dict) -> dict:
 def table2_variants() -> list:
     """Table 2's rows in order: (run, method, options, label); each ablation row is r2 plus
     one component at gr's default."""
-    from .config import TrainConfig
+    from mi_grg.training.config import TrainConfig
     d = TrainConfig()
     return [("r2", "r2", {}, "R2-Gaussian (baseline)"),
             ("r2+deinit", "r2", {"sigma_d": d.sigma_d}, "+ De-Init"),
@@ -385,8 +385,8 @@ def _curve_method(kind: str):
     """``kind`` ("sart" / "asd-pocs") with a per-sweep log of (seconds, 3-D PSNR) written to
     OUT/progress_log.csv; the time spent scoring is excluded from the logged seconds."""
     def run(case, out_dir=None, progress: bool = True, **options):
-        from . import iterative
-        from .metrics import psnr_3d
+        from mi_grg.classical import iterative
+        from mi_grg.evaluation.metrics import psnr_3d
         rows, spent = [], [0.0]
         t0 = time.perf_counter()
 
@@ -430,14 +430,14 @@ def _logged(path: Path):
 
 def simulate_data(case: CaseSpec, data_dir) -> Path:
     """Simulate ``case`` into ``data_dir`` (written to a temporary sibling, then renamed)."""
-    from .dataset import save_case
-    from .noise import NoiseModel
-    from .simulate import default_geometry, default_test_angles, simulate_case
+    from mi_grg.data.dataset import save_case
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     geo = default_geometry(n=case.n, det=case.det, views=case.views, mode=case.mode)
     test = default_test_angles(case.test_views) if case.test_views else np.zeros(0)
     noise = NoiseModel(**case.noise) if case.noise else None
     if case.is_volume:
-        from .volume_phantom import simulate_volume_case
+        from mi_grg.data.volume_phantom import simulate_volume_case
         c = simulate_volume_case(case.source, geo, test, noise, seed=case.seed,
                                  oversample=case.oversample, ground_truth=case.ground_truth)
     else:
@@ -476,8 +476,8 @@ def _run_task(task: dict) -> dict:
     try:
         with _logged(run_dir / "log.txt"):
             _worker_setup(task["variant"], task["threads"], task["extra"])
-            from .dataset import load_case
-            from .methods import get_method, reconstruct
+            from mi_grg.data.dataset import load_case
+            from mi_grg.methods import get_method, reconstruct
             case = load_case(task["data_dir"])
             opts = dict(task["options"])
             params = inspect.signature(get_method(task["method"])).parameters
@@ -558,7 +558,7 @@ def stale_options(run_dir: Path) -> list:
 
 def stale_keys(m: dict) -> list:
     """``stale_options`` for a run's metrics.json already read into ``m``."""
-    from .config import ADDED_LATER, PRESETS, TrainConfig, make_config
+    from mi_grg.training.config import ADDED_LATER, PRESETS, TrainConfig, make_config
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return []
@@ -840,15 +840,15 @@ def cmd_experiment(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report import write_report
+    from mi_grg.lab.report import write_report
     path = write_report(args.out, args.report)
     print(f"wrote {path}")
     return 0
 
 
 def main(argv=None) -> int:
-    """``python -m mi_grg.experiments experiment|report ...`` (same as ``mi-grg``)."""
-    p = argparse.ArgumentParser(prog="python -m mi_grg.experiments")
+    """``python -m mi_grg.lab.experiments experiment|report ...`` (same as ``mi-grg``)."""
+    p = argparse.ArgumentParser(prog="python -m mi_grg.lab.experiments")
     add_experiment_parser(p.add_subparsers(dest="command", required=True))
     args = p.parse_args(argv)
     return args.func(args)

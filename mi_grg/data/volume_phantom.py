@@ -28,7 +28,7 @@ Ground truth on the reconstruction grid (``ground_truth``):
     projected object.
 
 Noise: ``NoiseModel`` (TIGRE CTnoise) on the training views only, drawn from
-``np.random.default_rng([seed, 1])`` as in ``mi_grg.simulate``; test views are exact.
+``np.random.default_rng([seed, 1])`` as in ``mi_grg.data.simulate``; test views are exact.
 """
 from __future__ import annotations
 
@@ -41,9 +41,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .case import Case
-from .geometry import Geometry
-from .noise import NoiseModel
+from mi_grg.data.case import Case
+from mi_grg.core.geometry import Geometry
+from mi_grg.data.noise import NoiseModel
 
 DATA_ENV = "MI_GRG_DATA"
 DEFAULT_OVERSAMPLE = 4          # samples per source voxel length (step = voxel / 4)
@@ -58,7 +58,7 @@ def data_dir() -> Path:
     ``$MI_GRG_DATA`` if set, else ``<repo root>/../shared/data``; raises FileNotFoundError
     naming both when neither exists."""
     env = os.environ.get(DATA_ENV)
-    default = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
+    default = (Path(__file__).resolve().parents[2] / ".." / "shared" / "data").resolve()
     if env:
         p = Path(env).expanduser()
         if p.is_dir():
@@ -304,7 +304,7 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
             array [X, Y, Z]; it spans the geometry's volume box.
         geometry: scan geometry (training angles); ``nVoxel`` is the reconstruction grid.
             Its detector should cover the box's whole shadow (``default_geometry`` does).
-        test_angles: radians; None -> ``mi_grg.simulate.default_test_angles(n_train)``;
+        test_angles: radians; None -> ``mi_grg.data.simulate.default_test_angles(n_train)``;
             empty -> no test views.
         noise: ``NoiseModel`` on the training views only (None: exact).
         seed: noise seed (``np.random.default_rng([seed, 1])``).
@@ -314,7 +314,7 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
         Case with float32 train/test [view, v, u], vol_gt [x, y, z] = nVoxel and ``info``
         recording the source file, its provenance and licence, and the sampling.
     """
-    from .simulate import default_test_angles
+    from mi_grg.data.simulate import default_test_angles
     if not isinstance(geometry, Geometry):
         raise TypeError(f"geometry must be a mi_grg.Geometry, got {type(geometry).__name__}")
     if noise is not None and not isinstance(noise, NoiseModel):
@@ -339,7 +339,7 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
     gt = (average_to_grid(vol, geometry.nVoxel) if ground_truth == "average"
           else block_average(vol, geometry.nVoxel))
     info = {
-        "source": "mi_grg.volume_phantom",
+        "source": "mi_grg.data.volume_phantom",
         "volume": src_info,
         "sampling": {
             "object": "trilinear interpolant of the source voxels, clamped to the edge "

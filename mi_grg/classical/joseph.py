@@ -29,7 +29,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .geometry import Geometry
+from mi_grg.core.geometry import Geometry
 
 #: Rays per kernel launch (whole views per chunk); bounds temporary memory.
 MAX_RAYS = 1 << 22

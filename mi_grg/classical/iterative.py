@@ -34,8 +34,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .geometry import Geometry
-from .voxel_projector import JosephProjector, check_angles, check_projections
+from mi_grg.core.geometry import Geometry
+from mi_grg.classical.joseph import JosephProjector, check_angles, check_projections
 
 ORDERS = ("ordered", "random", "angular")
 #: Largest memory (bytes) spent on caching the per-subset column sums V_s.
@@ -210,9 +210,9 @@ def _initial(init, proj, geometry, angles, n_vox):
     if isinstance(init, str):
         if init != "fdk":
             raise ValueError(f"init must be 'zeros', 'fdk' or a volume [x, y, z], got {init!r}")
-        from .fdk import fdk_dr
+        from mi_grg.classical.fdk import fdk_dr
         return dr.maximum(fdk_dr(proj, geometry, angles).array, 0.0)
-    from .voxel_projector import check_volume
+    from mi_grg.classical.joseph import check_volume
     return mi.Float(check_volume(init, geometry, "init").reshape(-1))
 
 
@@ -314,7 +314,7 @@ def asd_pocs(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, tv_iter
     eng = _SART(p, geometry, a, blocksize, order, seed)
     shape = tuple(geometry.nVoxel)
     if epsilon is None:
-        from .fdk import fdk_dr
+        from mi_grg.classical.fdk import fdk_dr
         epsilon = 0.2 * eng.residual(fdk_dr(p, geometry, a).array)
     x = _initial(init, p, geometry, a, eng.A.n_vox)
     beta = float(relaxation)

@@ -25,7 +25,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .geometry import Geometry, circular_angles
+from mi_grg.core.geometry import Geometry, circular_angles
 
 
 class ScanError(ValueError):
@@ -378,7 +378,7 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     would; the geometry comes from the instantiated ``ct_scanner``.
     """
     import mitsuba as mi
-    from .variant import set_variant
+    from mi_grg.variant import set_variant
     set_variant(mi.variant())  # our plugins, registered for the active variant
     path = Path(path)
     if not path.is_file():
@@ -438,7 +438,7 @@ def load_mitsuba_scene(path, **params):
 
     ``params`` fill ``$name`` defaults of the file, as in ``mi.load_file``."""
     import mitsuba as mi
-    from .variant import set_variant
+    from mi_grg.variant import set_variant
     set_variant(mi.variant())
     return mi.load_file(str(path), **params)
 
@@ -533,7 +533,7 @@ def scan_to_xml(scan: Scan) -> str:
     if scan.object:
         body += _element(scan.object, 8, tag="medium")
     out = ['<?xml version="1.0" encoding="utf-8"?>\n',
-           '<!-- CT scan written by mi_grg.scene.write_scan_xml; schema: docs/conventions.md -->\n',
+           '<!-- CT scan written by mi_grg.data.scene.write_scan_xml; schema: docs/conventions.md -->\n',
            '<scene version="3.0.0">\n',
            f'    <sensor type="ct_scanner">\n{body}    </sensor>\n']
     if scan.integrator:

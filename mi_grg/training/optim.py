@@ -4,7 +4,7 @@ One *group* per raw Gaussian parameter; the group names are the keys of
 ``Gaussians.to_raw()`` so that ``Adam.step(raw)`` works on that dict directly:
 
     ========================  =======  ===============================================
-    group                     lr0      parameter (see ``mi_grg.gaussians``)
+    group                     lr0      parameter (see ``mi_grg.core.gaussians``)
     ========================  =======  ===============================================
     ``positions``             2e-4     centres, mi.Point3f [N, 3] (length units)
     ``raw_densities``         1e-2     softplus^-1(density), mi.Float [N]
@@ -104,7 +104,7 @@ class Adam:
 
     @classmethod
     def from_train_config(cls, cfg, max_steps: int) -> "Adam":
-        """From a ``mi_grg.config.TrainConfig`` (lr_position, lr_density, lr_scale,
+        """From a ``mi_grg.training.config.TrainConfig`` (lr_position, lr_density, lr_scale,
         lr_rotation, lr_final_ratio); ``max_steps``: the decay horizon (iterations)."""
         return cls(lr={"positions": cfg.lr_position, "raw_densities": cfg.lr_density,
                        "raw_scales": cfg.lr_scale, "raw_rotations": cfg.lr_rotation},

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import Geometry
+from mi_grg.core.geometry import Geometry
 
 
 @dataclass

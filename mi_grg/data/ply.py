@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .gaussians import Gaussians
+from mi_grg.core.gaussians import Gaussians
 
 SH_C0 = 0.28209479177387814         # Y_0^0 = 1 / (2 sqrt(pi)), as in 3DGS
 OPACITY_FLOOR = -60.0               # log-density written for rho < exp(-60) (incl. 0)
@@ -63,7 +63,7 @@ def save_ply(gaussians: Gaussians, path, sh_rest: bool = False) -> Path:
     ``sh_rest`` adds 45 zero ``f_rest_*`` properties (degree-3 SH) for viewers that
     require them. Returns the path."""
     if not isinstance(gaussians, Gaussians):
-        raise TypeError(f"gaussians must be mi_grg.gaussians.Gaussians, got "
+        raise TypeError(f"gaussians must be mi_grg.core.gaussians.Gaussians, got "
                         f"{type(gaussians).__name__}")
     g = gaussians.numpy()
     pos = g["positions"].astype(np.float64)

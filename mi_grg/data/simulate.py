@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .case import Case
-from .geometry import Geometry, circular_angles
-from .noise import NoiseModel
-from .phantoms import EllipsoidPhantom, make_phantom
+from mi_grg.data.case import Case
+from mi_grg.core.geometry import Geometry, circular_angles
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.phantoms import EllipsoidPhantom, make_phantom
 
 DSD, DSO, SVOXEL = 7.0, 5.0, 2.0
 SDETECTOR = {"cone": 4.2, "parallel": 3.0}
@@ -87,7 +87,7 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
         test = np.zeros((0, *geometry.nDetector), np.float32)
     vol = phantom.voxelize(geometry, supersample=supersample)
     info = {
-        "source": "mi_grg.simulate",
+        "source": "mi_grg.data.simulate",
         "phantom": phantom.name,
         "n_ellipsoids": len(phantom),
         "noise": None if noise is None else noise.to_dict(),

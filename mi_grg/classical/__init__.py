@@ -1,0 +1,1 @@
+"""Voxel-grid baselines: the Joseph projector, FDK, SART / OS-SART and ASD-POCS."""
