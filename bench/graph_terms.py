@@ -51,7 +51,7 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
     geo = case.geometry
     g0 = Gaussians.load_npz(run_dir / "gaussians.npz")
     n = len(g0)
-    graph = build_graph(g0.positions, k=cfg.k, s=cfg.graph_s or None)
+    graph = build_graph(g0.positions, k=cfg.k, s=cfg.graph_s)
     m = graph_density_scale(graph)
     rho = mi.Float(g0.densities)
     dr.enable_grad(rho)
@@ -65,7 +65,7 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
         dr.clear_grad(rho)
         means2d = dr.zeros(mi.Vector2f, n)
         dr.enable_grad(means2d)
-        img = project_dr(g, geo, angles=geo.angles[view:view + 1], extent=cfg.extent or None,
+        img = project_dr(g, geo, angles=geo.angles[view:view + 1], extent=cfg.extent,
                          density_scale=m, means2d=means2d)
         target = mi.TensorXf(np.ascontiguousarray(case.train[view], np.float32))
         pred = mi.TensorXf(img.array, (nv, nu))

@@ -32,7 +32,7 @@ def test_patience_needs_drops_at_consecutive_evaluations():
     u = EarlyStopper(drop=0.005, patience=2)            # the count survives a checkpoint
     u.update(1, 30.0), u.update(2, 29.0)
     v = EarlyStopper(drop=0.005, patience=2)
-    v.load_state(u.state())
+    v.load_state_dict(u.state_dict())
     assert v.kept_iteration == 1
     assert v.update(3, 29.0) == "stop"
     for bad in (0, 1.5):
@@ -51,7 +51,7 @@ def test_state_round_trip_and_nan():
     s = EarlyStopper()
     s.update(1, 10.0)
     t = EarlyStopper()
-    t.load_state(s.state())
+    t.load_state_dict(s.state_dict())
     assert t.update(2, 9.0) == "stop"
     with pytest.raises(FloatingPointError):
         t.update(3, math.nan)

@@ -235,9 +235,9 @@ def test_config_edge_cases_are_errors(tiny_case):
         Trainer(no_gt, make_config("gr", monitor_3d=True, **TINY), progress=False)
 
 
-@pytest.mark.parametrize("tv_extent, extent, want", [(3.0, 0.0, 3.0), (0.0, 4.0, 4.0)])
+@pytest.mark.parametrize("tv_extent, extent, want", [(3.0, None, 3.0), (None, 4.0, 4.0)])
 def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent, extent, want):
-    """The TV blocks use ``tv_extent`` (0: ``extent``); the final volume uses ``extent``."""
+    """The TV blocks use ``tv_extent`` (None: ``extent``); the final volume uses ``extent``."""
     import mi_grg.core.voxelizer as vox
     seen, real = [], vox.voxelize_dr
 
@@ -249,7 +249,7 @@ def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent,
     cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, tv_every=1,
                       **TINY)
     Trainer(tiny_case, cfg, progress=False).run()
-    assert seen == [want] * 3 + [extent or None]
+    assert seen == [want] * 3 + [extent]
 
 
 def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):
@@ -282,7 +282,7 @@ def test_loss_plot_smooths_the_alternating_tv_term(tmp_path, monkeypatch):
     """With tv_every = 2 the loss alternates; the plot's smoothed curve is the running mean
     (for 1, 3, 1, 3, ... it is 2 within one window's imbalance), and short logs still plot."""
     import matplotlib.axes
-    from mi_grg.training.trainer import LOSS_PLOT_WINDOW, plot_log
+    from mi_grg.evaluation.plotting import LOSS_PLOT_WINDOW, plot_log
     curves = []
     orig = matplotlib.axes.Axes.semilogy
 

@@ -1,7 +1,11 @@
-"""Figures people would rather look at than read: orthogonal slice montages."""
+"""Figures people would rather look at than read: orthogonal slice montages and the
+training log (loss, PSNR, Gaussian count per iteration)."""
 from __future__ import annotations
 
 import numpy as np
+
+#: Iterations averaged in the loss plot's smoothed curve.
+LOSS_PLOT_WINDOW = 25
 
 
 def _agg():
@@ -46,4 +50,42 @@ def slice_montage(path, pred: np.ndarray, gt: np.ndarray | None = None, title: s
     if title:
         fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_log(path, log: list, kept_iteration: int | None = None) -> None:
+    """Loss, held-out PSNR (and 3-D PSNR when known) and Gaussian count per iteration of a
+    training log (``mi_grg.training.log``); ``kept_iteration`` marks the state the run kept."""
+    plt = _agg()
+    it = [r["iteration"] for r in log]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
+    loss = np.asarray([r["loss"] for r in log], np.float64)
+    ax[0].semilogy(it, loss, lw=0.5, color="0.75", label="per iteration")
+    w = min(LOSS_PLOT_WINDOW, len(loss))
+    if w > 1:   # the mean over a window: the TV term enters every tv_every-th iteration only
+        ax[0].semilogy(it[w - 1:], np.convolve(loss, np.ones(w) / w, mode="valid"), lw=1.0,
+                       color="tab:blue", label=f"mean of {w}")
+        ax[0].legend(loc="upper right", fontsize=8)
+    ax[0].set_title("training loss")
+    ev = [r for r in log if r.get("heldout_psnr") not in (None, "")]
+    if ev:
+        ax[1].plot([r["iteration"] for r in ev], [r["heldout_psnr"] for r in ev], "o-",
+                   label="held-out views (2-D)")
+    ev3 = [r for r in log if r.get("psnr_3d") not in (None, "")]
+    if ev3:
+        ax1b = ax[1].twinx()
+        ax1b.plot([r["iteration"] for r in ev3], [r["psnr_3d"] for r in ev3], "s--",
+                  color="tab:red", label="3-D vs ground truth")
+        ax1b.set_ylabel("3-D PSNR (dB)", color="tab:red")
+    if kept_iteration is not None:
+        ax[1].axvline(kept_iteration, color="k", ls=":", label="kept state")
+    ax[1].set_title("PSNR (dB)")
+    if ax[1].get_legend_handles_labels()[0]:
+        ax[1].legend(loc="lower right", fontsize=8)
+    ax[2].plot(it, [r["n_gaussians"] for r in log], lw=0.8)
+    ax[2].set_title("Gaussians")
+    for a in ax:
+        a.set_xlabel("iteration")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
     plt.close(fig)

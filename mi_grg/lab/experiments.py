@@ -558,17 +558,19 @@ def stale_options(run_dir: Path) -> list:
 
 def stale_keys(m: dict) -> list:
     """``stale_options`` for a run's metrics.json already read into ``m``."""
-    from mi_grg.training.config import ADDED_LATER, PRESETS, TrainConfig, make_config
+    from mi_grg.training.config import (ADDED_LATER, PRESETS, TrainConfig, make_config,
+                                        upgrade_config_dict)
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return []
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    opts = {k: v for k, v in (m.get("options") or {}).items() if k in names}
+    opts = upgrade_config_dict({k: v for k, v in (m.get("options") or {}).items()
+                                if k in names})
     try:
         now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
-    used = {**ADDED_LATER, **used}      # recorded values win
+    used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
     return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
 
 

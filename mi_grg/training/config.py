@@ -9,7 +9,8 @@ Config files use Mitsuba's XML property syntax, so they read like the scene file
     </training>
 
 Every key must be a field of ``TrainConfig`` (unknown or misspelled keys are an error, with
-a suggestion) and the tag must match the field's type. Command-line ``--option key=value``
+a suggestion) and the tag must match the field's type. Fields that can be chosen
+automatically (``AUTO_FIELDS``) take ``value="none"`` (or are left out) for that. Command-line ``--option key=value``
 pairs override the file, which overrides the method preset, which overrides the defaults.
 Defaults are the GR-Gaussian paper's (Sec. 4.1.2) in R2-Gaussian's normalised units
 (volume in [-1, 1]^3).
@@ -23,6 +24,10 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 
 from mi_grg.training.early_stop import KEEP_STATES
+
+#: Fields whose None means "automatic" (each field's comment says what is chosen). Records
+#: written before they were optional spell that 0 (``upgrade_config_dict``).
+AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
@@ -43,12 +48,12 @@ class TrainConfig:
     """Every hyperparameter of GR-Gaussian / R2-Gaussian training."""
 
     # --- schedule
-    iterations: int = 0            # 0: scaled to the problem size (see train.iteration_rule)
+    iterations: int | None = None  # None: scaled to the problem size
+                                   # (mi_grg.training.trainer.iteration_rule)
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
                                    # adds sum in thread order, so volumes of two runs differ
-                                   # by ~1e-4 relative after 15 iterations and ~5e-3
-                                   # after a full 1500-iteration run (measured once)
-    extent: float = 0.0            # Gaussian support in std devs; 0: projector default
+                                   # slightly (docs/benchmarks.md)
+    extent: float | None = None    # Gaussian support in std devs; None: projector default
     # --- De-Init (Sec. 3.3.1)
     n_points: int = 50000          # M, capped by the number of candidate voxels
     init_tau: float = 0.001        # threshold, fraction of the denoised volume's max
@@ -62,7 +67,8 @@ class TrainConfig:
     # --- graph (Sec. 3.2)
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field
     k: int = 6                     # neighbours in the kNN graph
-    graph_s: float = 0.0           # weight scale s in exp(-d^2 / s); 0: automatic
+    graph_s: float | None = None   # weight scale s in exp(-d^2 / s); None: automatic
+                                   # (mi_grg.training.graph.default_scale)
     rebuild_keeps_field: bool = False  # after densification, rescale the densities so that
                                    # the rebuilt graph alone does not change the field:
                                    # each kernel keeps its source's multiplier 1 + sum w
@@ -88,8 +94,8 @@ class TrainConfig:
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05
     tv_block: int = 32             # edge of the randomly placed TV block, voxels
-    tv_extent: float = 3.0         # Gaussian support in std devs inside the TV block; 0:
-                                   # ``extent``. 3 is the 3-sigma cut of 3DGS-style
+    tv_extent: float | None = 3.0  # Gaussian support in std devs inside the TV block;
+                                   # None: ``extent``. 3 is the 3-sigma cut of 3DGS-style
                                    # rasterisers; it needs (3/4.5)^3 = 0.3x the voxel pairs
     tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
                                    # the same expected gradient (the block is random anyway)
@@ -110,8 +116,9 @@ class TrainConfig:
                                    # held-out PSNR, or "best" (why: mi_grg.training.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
-    log_3d_every: int = 0          # log 3-D PSNR vs ground truth every n iterations (no
-                                   # effect on training); 0: at each held-out evaluation
+    log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
+                                   # (no effect on training); None: at each held-out
+                                   # evaluation
     # --- bookkeeping
     checkpoint_every: int = 500
 
@@ -120,8 +127,13 @@ class TrainConfig:
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ConfigError(f"{f.name} must be finite, got {v}")
-        nonneg = [f.name for f in fields(self) if f.type in ("int", "float")
-                  and getattr(self, f.name) < 0]
+        for name in AUTO_FIELDS:
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ConfigError(f"{name} must be > 0 or none (automatic), got {v!r}; "
+                                  "0 no longer means automatic: write none or leave it out")
+        nonneg = [f.name for f in fields(self) if _base_type(f) in ("int", "float")
+                  and getattr(self, f.name) is not None and getattr(self, f.name) < 0]
         if nonneg:
             raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
         if self.k < 1:
@@ -146,8 +158,21 @@ class ConfigError(ValueError):
     """An invalid or unknown configuration key; the message names it."""
 
 
+def _base_type(f) -> str:
+    """A field's type without "| None" ("int", "float", "bool" or "str")."""
+    return f.type.replace(" | None", "")
+
+
+def upgrade_config_dict(values: dict) -> dict:
+    """A recorded config (checkpoint, metrics.json) in today's spelling: fields of
+    ``AUTO_FIELDS`` recorded as 0 (automatic, before they became optional) become None."""
+    return {k: (None if k in AUTO_FIELDS and v == 0 and not isinstance(v, bool) else v)
+            for k, v in values.items()}
+
+
 _FIELDS = {f.name: f for f in fields(TrainConfig)}
 _TAG_OF_TYPE = {"int": "integer", "float": "float", "bool": "boolean", "str": "string"}
+_NONE_WORDS = ("none", "null")
 
 
 def _check_key(key: str) -> None:
@@ -159,7 +184,10 @@ def _check_key(key: str) -> None:
 
 def _coerce(key: str, value):
     _check_key(key)
-    kind = _FIELDS[key].type
+    kind = _base_type(_FIELDS[key])
+    if key in AUTO_FIELDS and (value is None or (isinstance(value, str)
+                                                 and value.strip().lower() in _NONE_WORDS)):
+        return None
     try:
         if kind == "bool":
             if isinstance(value, str):
@@ -202,9 +230,9 @@ def read_config_xml(path) -> tuple[str | None, dict]:
         if name is None or value is None:
             raise ConfigError(f"{path}: <{el.tag}> needs name and value attributes")
         _check_key(name)
-        want = _TAG_OF_TYPE[_FIELDS[name].type]
+        want = _TAG_OF_TYPE[_base_type(_FIELDS[name])]
         if el.tag != want:
-            raise ConfigError(f"{path}: {name} is a {_FIELDS[name].type}; write <{want} "
+            raise ConfigError(f"{path}: {name} is a {_base_type(_FIELDS[name])}; write <{want} "
                               f"name=\"{name}\" .../>, not <{el.tag}>")
         if name in values:
             raise ConfigError(f"{path}: {name} is given twice")
@@ -213,13 +241,15 @@ def read_config_xml(path) -> tuple[str | None, dict]:
 
 
 def write_config_xml(config: TrainConfig, path, method: str | None = None) -> None:
-    """Write every field of ``config`` (a complete, self-documenting config file)."""
+    """Write every field of ``config`` (a complete, self-documenting config file); a field
+    left automatic is written as value="none"."""
     method_attr = f' method="{method}"' if method else ""
     lines = [f'<training version="1"{method_attr}>']
     for f in fields(config):
         v = getattr(config, f.name)
-        text = str(v).lower() if isinstance(v, bool) else v if isinstance(v, str) else repr(v)
-        lines.append(f'    <{_TAG_OF_TYPE[f.type]} name="{f.name}" value="{text}"/>')
+        text = ("none" if v is None else str(v).lower() if isinstance(v, bool)
+                else v if isinstance(v, str) else repr(v))
+        lines.append(f'    <{_TAG_OF_TYPE[_base_type(f)]} name="{f.name}" value="{text}"/>')
     lines.append("</training>\n")
     with open(path, "w") as fh:
         fh.write("\n".join(lines))

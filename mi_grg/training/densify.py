@@ -159,7 +159,8 @@ class PGADensifier:
 
     State: ``grad_accum`` (sum over views of the detector-plane gradient norm) and
     ``view_count`` (views in which each Gaussian was visible), both mi.Float [N]; None
-    until the first ``accumulate`` or ``reset``.
+    until the first ``accumulate`` or ``reset``; ``state_dict()`` / ``load_state_dict()``
+    save and restore them (checkpoints).
     """
 
     def __init__(self, config: DensifyConfig | None = None, seed: int = 0):
@@ -167,6 +168,28 @@ class PGADensifier:
         self.seed = int(seed)
         self.grad_accum = None
         self.view_count = None
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """NumPy copy of the accumulators: {"grad_accum": [N], "view_count": [N]} (float32;
+        both None before the first ``accumulate`` / ``reset``)."""
+        if self.grad_accum is None:
+            return {"grad_accum": None, "view_count": None}
+        return {"grad_accum": np.asarray(self.grad_accum, np.float32),
+                "view_count": np.asarray(self.view_count, np.float32)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()`` output."""
+        g, c = state["grad_accum"], state["view_count"]
+        if (g is None) != (c is None):
+            raise DensifyError("grad_accum and view_count must both be given or both None")
+        if g is None:
+            self.grad_accum = self.view_count = None
+            return
+        g, c = np.asarray(g, np.float32).reshape(-1), np.asarray(c, np.float32).reshape(-1)
+        if g.shape != c.shape:
+            raise DensifyError(f"grad_accum has {g.size} entries, view_count {c.size}")
+        self.grad_accum, self.view_count = mi.Float(g), mi.Float(c)
 
     # ------------------------------------------------------------------ statistics
     def reset(self, n: int) -> None:

@@ -85,12 +85,15 @@ class EarlyStopper:
                        f"a drop of more than {100 * self.drop:g} %{row}")
         return "stop"
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
+        """The evaluation state (JSON-serialisable); the settings (drop, patience, keep,
+        label) are the constructor's."""
         return {"best": self.best, "best_iteration": self.best_iteration,
                 "kept_iteration": self.kept_iteration,
                 "history": list(self.history), "reason": self.reason, "below": self.below}
 
-    def load_state(self, state: dict) -> None:
+    def load_state_dict(self, state: dict) -> None:
+        """Restore ``state_dict()`` output."""
         self.best, self.best_iteration = state["best"], state["best_iteration"]
         self.history = [tuple(x) for x in state["history"]]
         self.reason = state["reason"]

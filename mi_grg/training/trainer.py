@@ -18,32 +18,24 @@ Units: the loop works in the case's units (R2-Gaussian's normalised scene, volum
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 import math
-import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
+from mi_grg.training.checkpoint import CHECKPOINT_NAME, TrainState, load_checkpoint, save_checkpoint
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
-from mi_grg.core.gaussians import Gaussians
 
 # The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
 # we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
 REFERENCE_N = 50000
-
-#: Iterations averaged in the loss plot's smoothed curve.
-LOSS_PLOT_WINDOW = 25
-
-LOG_FIELDS = ("iteration", "seconds", "loss", "heldout_psnr", "psnr_3d", "n_gaussians")
 
 
 def iteration_rule(geometry) -> int:
@@ -113,151 +105,6 @@ def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     return out
 
 
-@dataclass
-class TrainState:
-    """Everything a checkpoint holds (explicit, so that resuming is exact)."""
-    iteration: int
-    raw: dict
-    rng: dict
-    log: list = field(default_factory=list)
-    kept_raw: dict | None = None
-    kept_density_scale: object = None
-    graph_positions: object = None   # positions [N, 3] the current graph was built from
-    stopper: dict | None = None
-    stopped_by: str | None = None
-    seconds: float = 0.0
-
-
-# ---------------------------------------------------------------------------- helpers
-def _raw_to_numpy(raw: dict) -> dict:
-    out = {}
-    for k, v in raw.items():
-        if dr.size_v(v) == 0:  # scalar-like
-            out[k] = np.asarray(v)
-        elif hasattr(v, "__len__") and dr.depth_v(v) > 1 and dr.size_v(v) > 1:
-            out[k] = np.stack([np.asarray(c) for c in v], -1)
-        else:
-            out[k] = np.asarray(v)
-    return out
-
-
-_RAW_TYPES = {"positions": "Point3f", "raw_scales": "Vector3f", "raw_rotations": "Vector4f",
-              "raw_densities": "Float"}
-
-
-def _raw_from_numpy(arrs: dict) -> dict:
-    out = {}
-    for k, t in _RAW_TYPES.items():
-        a = np.asarray(arrs[k], np.float32)
-        cls = getattr(mi, t)
-        out[k] = cls(a) if t == "Float" else cls(*[mi.Float(a[:, i]) for i in range(a.shape[1])])
-    return out
-
-
-def _atomic_savez(path: Path, **arrays) -> None:
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)  # never leaves a half-written checkpoint behind
-
-
-def save_checkpoint(path, state: TrainState, optimizer, densifier, cfg: TrainConfig) -> None:
-    arrays = {f"raw__{k}": v for k, v in _raw_to_numpy(state.raw).items()}
-    if state.kept_raw is not None:
-        arrays.update({f"kept__{k}": v for k, v in _raw_to_numpy(state.kept_raw).items()})
-        if state.kept_density_scale is not None:
-            arrays["kept_density_scale"] = np.asarray(state.kept_density_scale)
-    if state.graph_positions is not None:
-        arrays["graph_positions"] = np.asarray(state.graph_positions, np.float32)
-    opt = optimizer.state_dict()   # {group: {"m": [N, C], "v": [N, C], "step": int}}
-    for name, st in opt.items():
-        arrays[f"adam_m__{name}"] = st["m"]
-        arrays[f"adam_v__{name}"] = st["v"]
-    if densifier.grad_accum is not None:
-        arrays["dens_grad"] = np.asarray(densifier.grad_accum)
-        arrays["dens_count"] = np.asarray(densifier.view_count)
-    meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
-            "stopper": state.stopper, "stopped_by": state.stopped_by,
-            "seconds": state.seconds, "config": cfg.to_dict(),
-            "adam_steps": {n: st["step"] for n, st in opt.items()}}
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    _atomic_savez(Path(path), **arrays)
-
-
-def load_checkpoint(path, optimizer, densifier, cfg: TrainConfig) -> TrainState:
-    with np.load(path) as f:
-        meta = json.loads(bytes(f["meta"]).decode())
-        if meta["config"] != cfg.to_dict():
-            changed = sorted(k for k in meta["config"] if meta["config"][k] != cfg.to_dict()[k])
-            raise ValueError(f"checkpoint {path} was made with a different config "
-                             f"(differs in {changed}); resume with the same options")
-        raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
-        kept = (_raw_from_numpy({k: f[f"kept__{k}"] for k in _RAW_TYPES})
-                if "kept__positions" in f.files else None)
-        opt_state = {}
-        for name, step in meta["adam_steps"].items():
-            opt_state[name] = {"m": f[f"adam_m__{name}"], "v": f[f"adam_v__{name}"],
-                               "step": step}
-        if opt_state:
-            optimizer.load_state_dict(opt_state, like=raw)
-        if "dens_grad" in f.files:
-            densifier.grad_accum = mi.Float(f["dens_grad"])
-            densifier.view_count = mi.Float(f["dens_count"])
-        kept_ds = (mi.Float(f["kept_density_scale"]) if "kept_density_scale" in f.files
-                   else None)
-        graph_pos = f["graph_positions"] if "graph_positions" in f.files else None
-    return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
-                      kept_raw=kept, kept_density_scale=kept_ds, stopper=meta["stopper"],
-                      stopped_by=meta["stopped_by"], seconds=meta["seconds"],
-                      graph_positions=graph_pos)
-
-
-def write_log(out: Path, log: list) -> None:
-    with open(out / "train_log.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=LOG_FIELDS)
-        w.writeheader()
-        for row in log:
-            w.writerow({k: row.get(k, "") for k in LOG_FIELDS})
-    plot_log(out / "train_log.png", log)
-
-
-def plot_log(path, log: list, kept_iteration: int | None = None) -> None:
-    """Loss, held-out PSNR (and 3-D PSNR when known) and Gaussian count per iteration."""
-    from mi_grg.evaluation.plotting import _agg
-    plt = _agg()
-    it = [r["iteration"] for r in log]
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
-    loss = np.asarray([r["loss"] for r in log], np.float64)
-    ax[0].semilogy(it, loss, lw=0.5, color="0.75", label="per iteration")
-    w = min(LOSS_PLOT_WINDOW, len(loss))
-    if w > 1:   # the mean over a window: the TV term enters every tv_every-th iteration only
-        ax[0].semilogy(it[w - 1:], np.convolve(loss, np.ones(w) / w, mode="valid"), lw=1.0,
-                       color="tab:blue", label=f"mean of {w}")
-        ax[0].legend(loc="upper right", fontsize=8)
-    ax[0].set_title("training loss")
-    ev = [r for r in log if r.get("heldout_psnr") not in (None, "")]
-    if ev:
-        ax[1].plot([r["iteration"] for r in ev], [r["heldout_psnr"] for r in ev], "o-",
-                   label="held-out views (2-D)")
-    ev3 = [r for r in log if r.get("psnr_3d") not in (None, "")]
-    if ev3:
-        ax1b = ax[1].twinx()
-        ax1b.plot([r["iteration"] for r in ev3], [r["psnr_3d"] for r in ev3], "s--",
-                  color="tab:red", label="3-D vs ground truth")
-        ax1b.set_ylabel("3-D PSNR (dB)", color="tab:red")
-    if kept_iteration is not None:
-        ax[1].axvline(kept_iteration, color="k", ls=":", label="kept state")
-    ax[1].set_title("PSNR (dB)")
-    if ax[1].get_legend_handles_labels()[0]:
-        ax[1].legend(loc="lower right", fontsize=8)
-    ax[2].plot(it, [r["n_gaussians"] for r in log], lw=0.8)
-    ax[2].set_title("Gaussians")
-    for a in ax:
-        a.set_xlabel("iteration")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
 # ---------------------------------------------------------------------------- training
 class Trainer:
     """One training run on a case. Construct, then ``run()``; see the module docstring."""
@@ -271,7 +118,7 @@ class Trainer:
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
         geo = case.geometry
-        self.iterations = cfg.iterations or iteration_rule(geo)
+        self.iterations = cfg.iterations if cfg.iterations is not None else iteration_rule(geo)
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         sched = _scaled(cfg, self.iterations)
         self.sched = sched
@@ -291,30 +138,29 @@ class Trainer:
         self.densifier = PGADensifier(dcfg, seed=cfg.seed)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
-        self.extent = cfg.extent or None
+        self.extent = cfg.extent
         # The TV term is a regulariser on a random block, not a measurement: a shorter
         # support costs a third of the voxel pairs (its field differs from the full one by
         # at most rho exp(-9/2) = 0.011 rho per Gaussian).
-        self.tv_extent = cfg.tv_extent or self.extent
+        self.tv_extent = cfg.tv_extent if cfg.tv_extent is not None else self.extent
         if cfg.monitor_3d and case.vol_gt is None:
             raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
                              "this case has none (vol_gt.npy); use the held-out views")
-        ckpt = self.out / "checkpoint.npz" if self.out is not None else None
-        if resume and ckpt is not None and ckpt.exists():
-            self.state = load_checkpoint(ckpt, self.optimizer, self.densifier, cfg)
+        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
+                                    keep=cfg.keep_state)
+        self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
+        if resume and self.checkpoint_path is not None and self.checkpoint_path.exists():
+            self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
+                                         self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
         else:
-            if resume and ckpt is not None:
+            if resume and self.checkpoint_path is not None:
                 print(f"no checkpoint in {self.out}; starting from scratch")
             g, self.init_info = self._initial_gaussians()
             self.state = TrainState(iteration=0, raw=g.to_raw(),
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
-        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
-                                    keep=cfg.keep_state)
-        if self.state.stopper:
-            self.stopper.load_state(self.state.stopper)
         self.graph = None
         # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
         # set with the graph: constant until the next rebuild.
@@ -342,7 +188,7 @@ class Trainer:
             # (about 1 + k/2 e^-1 .. 1 + k); the init densities were calibrated for the plain
             # field, so divide by that factor: the initial field is the same either way.
             from mi_grg.training.graph import build_graph, graph_density_scale
-            scale = graph_density_scale(build_graph(g.positions, k=cfg.k, s=cfg.graph_s or None))
+            scale = graph_density_scale(build_graph(g.positions, k=cfg.k, s=cfg.graph_s))
             g = g.replace(densities=g.densities / scale)
             info["graph_field_init_divisor_mean"] = float(dr.mean(scale)[0]
                                                           if dr.width(dr.mean(scale)) else 1.0)
@@ -357,7 +203,7 @@ class Trainer:
             self.graph = None
             return
         p = mi.Point3f(dr.detach(positions))
-        self.graph = build_graph(p, k=self.cfg.k, s=self.cfg.graph_s or None)
+        self.graph = build_graph(p, k=self.cfg.k, s=self.cfg.graph_s)
         self.state.graph_positions = np.stack([np.asarray(c) for c in p], -1)
         if self.cfg.use_graph_field:
             # constant until the next rebuild: computed once here, not every iteration
@@ -393,117 +239,151 @@ class Trainer:
         if density_scale is None and self.cfg.use_graph_field:
             from mi_grg.training.graph import build_graph, graph_density_scale
             density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
-                                                            s=self.cfg.graph_s or None))
+                                                            s=self.cfg.graph_s))
         return voxelize(g, self.case.geometry, extent=self.extent, density_scale=density_scale)
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> dict:
+        """Train to the end of the budget or an early stop; returns the run's summary and
+        (with an output folder) writes the checkpoint, log, plot and Gaussians."""
         from tqdm import tqdm
-
-        from mi_grg.training.graph import laplacian_loss, mean_abs_density_difference
-        from mi_grg.training.losses import projection_loss, tv_3d
-        cfg, geo, st = self.cfg, self.case.geometry, self.state
+        st = self.state
         raw = {k: dr.detach(v) for k, v in st.raw.items()}
         for v in raw.values():
             dr.enable_grad(v)
         gp = st.graph_positions
         self._rebuild_graph(raw["positions"] if gp is None else
                             mi.Point3f(*[mi.Float(np.ascontiguousarray(gp[:, i])) for i in range(3)]))
-        nvox = np.asarray(geo.nVoxel)
-        block = np.minimum(cfg.tv_block, nvox)
-        nv, nu = geo.nDetector
-        # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
-        # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
-        ndc = mi.Vector2f(nu / 2.0, nv / 2.0)
-        t_start = time.perf_counter() - st.seconds
+        # Wall clock of the training alone: research logging (3-D PSNR) is subtracted.
+        self._t_start = time.perf_counter() - st.seconds
         bar = tqdm(total=self.iterations, initial=st.iteration, disable=not self.progress,
                    desc=f"train ({'graph' if self.uses_graph else 'no graph'})",
                    dynamic_ncols=True, mininterval=1.0)
         last_psnr = None
-        loss_value = float("nan")
         while st.iteration < self.iterations and st.stopped_by is None:
             it = st.iteration + 1
-            view = int(self.rng.choice(self.fit_idx))
-            g = Gaussians.from_raw(raw)
-            ds = self._density_scale
-            n = len(g)
-            means2d = dr.zeros(mi.Vector2f, n)
-            dr.enable_grad(means2d)
-            img = self._project(g, geo.angles[view:view + 1], ds, means2d)
-            target = self.targets[view]
-            pred = mi.TensorXf(img.array, (nv, nu))
-            loss = projection_loss(pred, target, cfg.lambda_ssim)
-            if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
-                start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
-                from mi_grg.core.voxelizer import voxelize_dr
-                vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
-                                  density_scale=ds)
-                loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
-            if cfg.lambda_lap > 0 and self.graph is not None:
-                lap = laplacian_loss(self.graph, g.densities, normalise=False)
-                loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap
-            dr.backward(loss)
-            grad2d = dr.grad(means2d)
-            gnorm = dr.norm(mi.Vector2f(grad2d.x * ndc.x, grad2d.y * ndc.y))
-            self.densifier.accumulate(gnorm, visible=gnorm > 0)
-            loss_value = float(loss[0]) if dr.width(loss) else float(loss)
-            if not math.isfinite(loss_value):
-                raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
-            raw = self.optimizer.step(raw)
+            raw, loss_value = self._step(it, raw)
             if self.densifier.is_densify_iteration(it):
-                term = None
-                if cfg.use_pga and self.graph is not None:
-                    term = mean_abs_density_difference(self.graph,
-                                                       dr.detach(Gaussians.from_raw(raw).densities))
-                old_scale = self._density_scale if cfg.rebuild_keeps_field else None
-                raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
-                                                bbox=geo.bbox())
-                self._rebuild_graph(raw["positions"])
-                if info["densified"] and old_scale is not None:
-                    raw = carry_density_scale(raw, old_scale, self._density_scale,
-                                              info["source"])
+                raw = self._densify_and_rebuild(it, raw)
             st.iteration, st.raw = it, raw
-            row = {"iteration": it, "seconds": round(time.perf_counter() - t_start, 3),
+            row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
-            want_3d = self.case.vol_gt is not None and (
-                (it % cfg.log_3d_every == 0 if cfg.log_3d_every else is_eval)
-                or (cfg.monitor_3d and is_eval))
-            if want_3d:
-                # Research logging: not counted in the training time.
-                t3 = time.perf_counter()
-                from mi_grg.evaluation.metrics import psnr_3d
-                row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
-                                               self.case.vol_gt))
-                t_start += time.perf_counter() - t3
-            if is_eval:
-                last_psnr = self._heldout_psnr(raw)
-                row["heldout_psnr"] = last_psnr
-                watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr
-                # Densification reshapes the model; judge (and keep) states only after it.
-                if watched is not None and it >= self.sched["densify_stop"]:
-                    if cfg.monitor_3d:
-                        self.stopper.label = "3-D PSNR vs ground truth (research option)"
-                    verdict = self.stopper.update(it, watched)
-                    if self.stopper.kept_iteration == it:
-                        st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
-                        ds = self._density_scale
-                        st.kept_density_scale = None if ds is None else mi.Float(ds)
-                    elif verdict == "stop":
-                        st.stopped_by = self.stopper.reason
-                st.stopper = self.stopper.state()
+            last_psnr = self._evaluate(it, raw, row, last_psnr)
             st.log.append(row)
             bar.update(1)
             bar.set_postfix(loss=f"{loss_value:.4f}", N=row["n_gaussians"],
                             heldout=f"{last_psnr:.2f}" if last_psnr is not None else "-",
                             refresh=False)
-            st.seconds = time.perf_counter() - t_start
+            st.seconds = time.perf_counter() - self._t_start
             st.rng = self.rng.bit_generator.state
-            if self.out is not None and (it % self.cfg.checkpoint_every == 0
-                                         or st.stopped_by is not None):
-                save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer,
-                                self.densifier, cfg)
+            if it % self.cfg.checkpoint_every == 0 or st.stopped_by is not None:
+                self._save_checkpoint()
         bar.close()
+        return self._finish()
+
+    def _step(self, it: int, raw: dict):
+        """One iteration: a random fitting view's projection loss (+ TV on a random block
+        every ``tv_every``-th iteration, + the graph Laplacian), backward, densification
+        statistics, Adam. Returns (new raw, loss value). Random draws, in this order: the
+        view, then the TV block's corner."""
+        from mi_grg.training.graph import laplacian_loss
+        from mi_grg.training.losses import projection_loss, tv_3d
+        cfg, geo = self.cfg, self.case.geometry
+        nv, nu = geo.nDetector
+        view = int(self.rng.choice(self.fit_idx))
+        g = Gaussians.from_raw(raw)
+        ds = self._density_scale
+        n = len(g)
+        means2d = dr.zeros(mi.Vector2f, n)
+        dr.enable_grad(means2d)
+        img = self._project(g, geo.angles[view:view + 1], ds, means2d)
+        pred = mi.TensorXf(img.array, (nv, nu))
+        loss = projection_loss(pred, self.targets[view], cfg.lambda_ssim)
+        if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
+            nvox = np.asarray(geo.nVoxel)
+            block = np.minimum(cfg.tv_block, nvox)
+            start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
+            from mi_grg.core.voxelizer import voxelize_dr
+            vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
+                              density_scale=ds)
+            loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
+        if cfg.lambda_lap > 0 and self.graph is not None:
+            lap = laplacian_loss(self.graph, g.densities, normalise=False)
+            loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap
+        dr.backward(loss)
+        # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
+        # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
+        grad2d = dr.grad(means2d)
+        gnorm = dr.norm(mi.Vector2f(grad2d.x * (nu / 2.0), grad2d.y * (nv / 2.0)))
+        self.densifier.accumulate(gnorm, visible=gnorm > 0)
+        loss_value = float(loss[0]) if dr.width(loss) else float(loss)
+        if not math.isfinite(loss_value):
+            raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
+        return self.optimizer.step(raw), loss_value
+
+    def _densify_and_rebuild(self, it: int, raw: dict) -> dict:
+        """PGA densification (graph term from the current graph), then a new graph; with
+        ``rebuild_keeps_field`` the densities carry the old graph's multiplier over."""
+        from mi_grg.training.graph import mean_abs_density_difference
+        cfg = self.cfg
+        term = None
+        if cfg.use_pga and self.graph is not None:
+            term = mean_abs_density_difference(self.graph,
+                                               dr.detach(Gaussians.from_raw(raw).densities))
+        old_scale = self._density_scale if cfg.rebuild_keeps_field else None
+        raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
+                                        bbox=self.case.geometry.bbox())
+        self._rebuild_graph(raw["positions"])
+        if info["densified"] and old_scale is not None:
+            raw = carry_density_scale(raw, old_scale, self._density_scale, info["source"])
+        return raw
+
+    def _evaluate(self, it: int, raw: dict, row: dict, last_psnr):
+        """Logging and early stopping at this iteration: the 3-D PSNR (research logging,
+        when there is a ground truth and it is due) and, every ``eval_every`` iterations
+        and at the last, the held-out views' PSNR, which the stopper judges once
+        densification has ended (``monitor_3d``: the 3-D PSNR instead). Fills ``row``;
+        returns the latest held-out PSNR."""
+        cfg, st = self.cfg, self.state
+        is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
+        want_3d = self.case.vol_gt is not None and (
+            (it % cfg.log_3d_every == 0 if cfg.log_3d_every else is_eval)
+            or (cfg.monitor_3d and is_eval))
+        if want_3d:
+            # Research logging: not counted in the training time.
+            t3 = time.perf_counter()
+            from mi_grg.evaluation.metrics import psnr_3d
+            row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
+                                           self.case.vol_gt))
+            self._t_start += time.perf_counter() - t3
+        if not is_eval:
+            return last_psnr
+        last_psnr = self._heldout_psnr(raw)
+        row["heldout_psnr"] = last_psnr
+        watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr
+        # Densification reshapes the model; judge (and keep) states only after it.
+        if watched is not None and it >= self.sched["densify_stop"]:
+            if cfg.monitor_3d:
+                self.stopper.label = "3-D PSNR vs ground truth (research option)"
+            verdict = self.stopper.update(it, watched)
+            if self.stopper.kept_iteration == it:
+                st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
+                ds = self._density_scale
+                st.kept_density_scale = None if ds is None else mi.Float(ds)
+            elif verdict == "stop":
+                st.stopped_by = self.stopper.reason
+        return last_psnr
+
+    def _save_checkpoint(self) -> None:
+        if self.checkpoint_path is not None:
+            save_checkpoint(self.checkpoint_path, self.state, self.optimizer, self.densifier,
+                            self.stopper, self.cfg)
+
+    def _finish(self) -> dict:
+        """Why the run ended, the state to return (the kept one, refitted on all views when
+        ``refit_iterations``), the summary; with an output folder, the final checkpoint,
+        train_log.csv / .png and the Gaussians (.npz, .ply)."""
+        cfg, st = self.cfg, self.state
         if st.stopped_by is None:
             st.stopped_by = (f"iteration budget ({self.iterations}) reached"
                              if st.iteration >= self.iterations else "interrupted")
@@ -524,13 +404,15 @@ class Trainer:
                    "max_gaussians": self.densifier.config.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info}
         if self.out is not None:
-            save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)
-            write_log(self.out, st.log)
-            plot_log(self.out / "train_log.png", st.log, summary["kept_iteration"]
-                     if summary["kept_iteration"] > 0 else None)
+            from mi_grg.data.ply import save_ply
+            from mi_grg.evaluation.plotting import plot_log
+            from mi_grg.training.log import write_log
+            self._save_checkpoint()
+            write_log(self.out / "train_log.csv", st.log)
+            kept = summary["kept_iteration"]
+            plot_log(self.out / "train_log.png", st.log, kept if kept > 0 else None)
             g = Gaussians.from_raw(final)
             g.save_npz(self.out / "gaussians.npz")
-            from mi_grg.data.ply import save_ply
             save_ply(g, self.out / "gaussians.ply")
         return summary
 

@@ -1,0 +1,146 @@
+"""Training checkpoints: what a run's state is, and its file (``checkpoint.npz``).
+
+A checkpoint holds the ``TrainState`` (parameters, RNG, log, kept state, graph positions)
+and the state of every stateful part through its ``state_dict()``: the optimiser
+(``Adam``), the densifier (``PGADensifier``) and the early stopper (``EarlyStopper``).
+Resuming from it continues the run where it stopped (the same views, the same
+densification decisions up to float-atomic order). Files are written atomically: a crash
+while writing leaves the previous checkpoint.
+
+File layout (one ``.npz``; unchanged since checkpoints were introduced, so older files
+load): ``raw__<key>`` / ``kept__<key>`` parameter arrays, ``kept_density_scale``,
+``graph_positions`` [N, 3], ``adam_m__<group>`` / ``adam_v__<group>`` [N, C],
+``dens_grad`` / ``dens_count`` [N] and ``meta`` (JSON: iteration, rng, log, stopper,
+stopped_by, seconds, config, adam_steps).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_grg.training.config import TrainConfig, upgrade_config_dict
+
+#: The file name inside a run's output folder.
+CHECKPOINT_NAME = "checkpoint.npz"
+
+
+@dataclass
+class TrainState:
+    """The training loop's own state (explicit, so that resuming is exact)."""
+    iteration: int
+    raw: dict
+    rng: dict
+    log: list = field(default_factory=list)
+    kept_raw: dict | None = None
+    kept_density_scale: object = None
+    graph_positions: object = None   # positions [N, 3] the current graph was built from
+    stopped_by: str | None = None
+    seconds: float = 0.0
+
+
+_RAW_TYPES = {"positions": "Point3f", "raw_scales": "Vector3f", "raw_rotations": "Vector4f",
+              "raw_densities": "Float"}
+
+
+def _raw_to_numpy(raw: dict) -> dict:
+    out = {}
+    for k, v in raw.items():
+        if dr.size_v(v) == 0:  # scalar-like
+            out[k] = np.asarray(v)
+        elif hasattr(v, "__len__") and dr.depth_v(v) > 1 and dr.size_v(v) > 1:
+            out[k] = np.stack([np.asarray(c) for c in v], -1)
+        else:
+            out[k] = np.asarray(v)
+    return out
+
+
+def _raw_from_numpy(arrs: dict) -> dict:
+    out = {}
+    for k, t in _RAW_TYPES.items():
+        a = np.asarray(arrs[k], np.float32)
+        cls = getattr(mi, t)
+        out[k] = cls(a) if t == "Float" else cls(*[mi.Float(a[:, i]) for i in range(a.shape[1])])
+    return out
+
+
+def _atomic_savez(path: Path, **arrays) -> None:
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)  # never leaves a half-written checkpoint behind
+
+
+def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
+                    cfg: TrainConfig) -> None:
+    """Write ``state`` and the state_dict() of ``optimizer`` (Adam), ``densifier``
+    (PGADensifier) and ``stopper`` (EarlyStopper) to ``path`` (atomically)."""
+    arrays = {f"raw__{k}": v for k, v in _raw_to_numpy(state.raw).items()}
+    if state.kept_raw is not None:
+        arrays.update({f"kept__{k}": v for k, v in _raw_to_numpy(state.kept_raw).items()})
+        if state.kept_density_scale is not None:
+            arrays["kept_density_scale"] = np.asarray(state.kept_density_scale)
+    if state.graph_positions is not None:
+        arrays["graph_positions"] = np.asarray(state.graph_positions, np.float32)
+    opt = optimizer.state_dict()   # {group: {"m": [N, C], "v": [N, C], "step": int}}
+    for name, st in opt.items():
+        arrays[f"adam_m__{name}"] = st["m"]
+        arrays[f"adam_v__{name}"] = st["v"]
+    dens = densifier.state_dict()  # {"grad_accum": [N] | None, "view_count": [N] | None}
+    if dens["grad_accum"] is not None:
+        arrays["dens_grad"] = dens["grad_accum"]
+        arrays["dens_count"] = dens["view_count"]
+    # Before the first evaluation the stopper has seen nothing: stored as None, as always.
+    stop = stopper.state_dict() if stopper.history else None
+    meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
+            "stopper": stop, "stopped_by": state.stopped_by,
+            "seconds": state.seconds, "config": cfg.to_dict(),
+            "adam_steps": {n: st["step"] for n, st in opt.items()}}
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    _atomic_savez(Path(path), **arrays)
+
+
+def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> TrainState:
+    """Read a checkpoint written by ``save_checkpoint`` (of this or an earlier version):
+    restores ``optimizer``, ``densifier`` and ``stopper`` through load_state_dict() and
+    returns the ``TrainState``. A checkpoint of another config is an error that names the
+    differing fields (resuming must continue the same run)."""
+    try:
+        f = np.load(path)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
+    with f:
+        if "meta" not in f.files:
+            raise ValueError(f"{path} is not a training checkpoint (no meta record)")
+        meta = json.loads(bytes(f["meta"]).decode())
+        # Older checkpoints spell "automatic" as 0 for the fields that are None now.
+        used, want = upgrade_config_dict(meta["config"]), cfg.to_dict()
+        if used != want:
+            changed = sorted(k for k in set(used) | set(want) if used.get(k) != want.get(k))
+            raise ValueError(f"checkpoint {path} was made with a different config "
+                             f"(differs in {changed}); resume with the same options")
+        raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
+        kept = (_raw_from_numpy({k: f[f"kept__{k}"] for k in _RAW_TYPES})
+                if "kept__positions" in f.files else None)
+        opt_state = {}
+        for name, step in meta["adam_steps"].items():
+            opt_state[name] = {"m": f[f"adam_m__{name}"], "v": f[f"adam_v__{name}"],
+                               "step": step}
+        if opt_state:
+            optimizer.load_state_dict(opt_state, like=raw)
+        has_dens = "dens_grad" in f.files
+        densifier.load_state_dict({"grad_accum": f["dens_grad"] if has_dens else None,
+                                   "view_count": f["dens_count"] if has_dens else None})
+        if meta["stopper"]:
+            stopper.load_state_dict(meta["stopper"])
+        kept_ds = (mi.Float(f["kept_density_scale"]) if "kept_density_scale" in f.files
+                   else None)
+        graph_pos = f["graph_positions"] if "graph_positions" in f.files else None
+    return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
+                      kept_raw=kept, kept_density_scale=kept_ds,
+                      stopped_by=meta["stopped_by"], seconds=meta["seconds"],
+                      graph_positions=graph_pos)
