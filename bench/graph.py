@@ -1,10 +1,10 @@
-"""Benchmark: mi_grg.training.graph kNN + mutual edges vs scipy's cKDTree, same run, same points.
+"""Benchmark: mi_grg.training.knn + graph.mutual_edges vs scipy's cKDTree, same run, same points.
 
     .venv/bin/python bench/graph.py [--sizes 10000 50000 200000] [--repeats 5] [--k 6]
 
 Times (seconds, wall clock, medians of --repeats runs after one warm-up run that pays the
 JIT compilation) for
-  ours:    graph.knn + graph.mutual_edges, results evaluated (dr.eval)
+  ours:    knn.knn + graph.mutual_edges, results evaluated (dr.eval)
   cKDTree: cKDTree(points) + query(k + 1) + NumPy mutual edges, float64, with
            workers=1 (its default) and workers=-1 (all cores)
 on a uniform cloud in [0, 1]^3 and a clustered one (95% of the points in 4 tiny
@@ -31,6 +31,7 @@ import drjit as dr
 import mitsuba as mi  # noqa: F401
 
 from mi_grg.training import graph as G
+from mi_grg.training import knn as K
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,7 +53,7 @@ def ours(P, k):
     p = mi.Point3f(*[mi.Float(np.ascontiguousarray(P[:, a])) for a in range(3)])
     dr.eval(p)
     t = time.perf_counter()
-    idx, d2, stats = G.knn_with_stats(p, k)
+    idx, d2, stats = K.knn_with_stats(p, k)
     src, dst = G.mutual_edges(idx, k)
     dr.eval(idx, d2, src, dst)
     return time.perf_counter() - t, np.asarray(d2).reshape(-1, k), dr.width(src), stats

@@ -295,9 +295,8 @@ def test_accumulate_multi_view_visibility(variant, rng):
 
 
 def test_from_train_config_and_graph_module(variant, rng):
-    """Composition with mi_grg.training.config and mi_grg.training.graph (skipped if they are absent)."""
-    config = pytest.importorskip("mi_grg.training.config")
-    graph = pytest.importorskip("mi_grg.training.graph")
+    """Composition with mi_grg.training.config and mi_grg.training.graph."""
+    from mi_grg.training import config, graph
     cfg = config.TrainConfig(densify_interval=50, densify_start=100, densify_stop=1000,
                              densify_grad_threshold=3e-5, lambda_g=2e-4, use_pga=True,
                              max_gaussians=1234)
@@ -331,7 +330,7 @@ def test_rebuild_keeps_graph_field_through_clones(variant, rng):
     """Clones change neither positions nor the plain field; with carry_density_scale the
     graph field after the rebuild equals the one before (float64 reference), without it
     the clone pairs render more mass. ``source`` names each row's origin."""
-    graph = pytest.importorskip("mi_grg.training.graph")
+    from mi_grg.training import graph
     from mi_grg.training.trainer import carry_density_scale
     n = 300
     pos = rng.uniform(-0.5, 0.5, (n, 3))

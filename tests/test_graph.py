@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.training import graph as G
+from mi_grg.training import knn as K
 
 
 # ---------------------------------------------------------------------------- clouds
@@ -120,7 +121,7 @@ def check_knn(P, k, idx, d2):
 @pytest.mark.parametrize("k", [1, 6, 8])
 def test_knn_matches_ckdtree(variant, rng, cloud, k):
     P = CLOUDS[cloud](rng, 3000)
-    idx, d2, stats = G.knn_with_stats(mi.Point3f(*[mi.Float(P[:, a]) for a in range(3)]), k)
+    idx, d2, stats = K.knn_with_stats(mi.Point3f(*[mi.Float(P[:, a]) for a in range(3)]), k)
     assert dr.width(idx) == 3000 * k and isinstance(idx, mi.UInt32)
     assert isinstance(d2, mi.Float)
     check_knn(P, k, idx, d2)
@@ -129,7 +130,7 @@ def test_knn_matches_ckdtree(variant, rng, cloud, k):
 def test_knn_clustered_uses_many_levels_and_fallback(rng):
     """The clustered cloud needs several cell sizes and exercises the certificate."""
     P = clustered(rng, 6000)
-    idx, d2, stats = G.knn_with_stats(P, 6)
+    idx, d2, stats = K.knn_with_stats(P, 6)
     check_knn(P, 6, idx, d2)
     assert len(stats["start_levels"]) >= 4, stats
     assert stats["failed_certificates"] > 0, stats
@@ -151,15 +152,15 @@ def _adversarial():
 def test_single_level_search_is_wrong_and_certificate_catches_it():
     P, qi = _adversarial()
     p = mi.Point3f(*[mi.Float(P[:, a]) for a in range(3)])
-    frame = G._Frame(p)
+    frame = K._Frame(p)
     lv = frame.level(3)
     lv["delta"] = frame.delta
-    bd, bi, cert, _ = G._query_level(p, mi.UInt32([qi]), lv, G._build_level(p, lv), 6)
+    bd, bi, cert, _ = K._query_level(p, mi.UInt32([qi]), lv, K._build_level(p, lv), 6)
     found = {int(b[0]) for b in bi}
     assert 3 not in found                      # the 3x3x3 search alone is wrong ...
     assert not bool(cert[0])                   # ... and the certificate says so
     # the full search, started on that level, falls back to coarser ones and is exact
-    idx, d2, stats = G.knn_with_stats(P, 6, start_level=3)
+    idx, d2, stats = K.knn_with_stats(P, 6, start_level=3)
     I, _ = check_knn(P, 6, idx, d2)
     assert I[qi, 0] == 3
     assert stats["start_levels"] == {3: len(P)} and stats["failed_certificates"] >= 1
@@ -172,11 +173,11 @@ def test_certificate_is_sound_at_every_level(rng, r):
     P = np.concatenate([uniform(rng, 1500), clustered(rng, 1500)])
     k = 6
     p = mi.Point3f(*[mi.Float(P[:, a]) for a in range(3)])
-    frame = G._Frame(p)
+    frame = K._Frame(p)
     lv = frame.level(r)
     lv["delta"] = frame.delta
     n = len(P)
-    bd, bi, cert, _ = G._query_level(p, dr.arange(mi.UInt32, n), lv, G._build_level(p, lv), k)
+    bd, bi, cert, _ = K._query_level(p, dr.arange(mi.UInt32, n), lv, K._build_level(p, lv), k)
     D = np.stack([np.asarray(b, np.float64) for b in bd], 1)
     cert = np.asarray(cert)
     ref_d, _, _ = reference_knn(P, k)
@@ -191,29 +192,29 @@ def test_certificate_is_sound_at_every_level(rng, r):
 @pytest.mark.parametrize("n", [1, 2, 6, 7])
 def test_knn_fewer_points_than_k_pads_with_self(variant, rng, n):
     P = uniform(rng, n)
-    idx, d2 = G.knn(P, 6)
+    idx, d2 = K.knn(P, 6)
     check_knn(P, 6, idx, d2)
 
 
 def test_knn_empty_and_errors():
-    idx, d2 = G.knn(np.zeros((0, 3), np.float32), 6)
+    idx, d2 = K.knn(np.zeros((0, 3), np.float32), 6)
     assert dr.width(idx) == 0 and dr.width(d2) == 0
     bad = np.zeros((10, 3), np.float32)
     bad[4, 1] = np.nan
     with pytest.raises(ValueError, match="points"):
-        G.knn(bad, 6)
+        K.knn(bad, 6)
     with pytest.raises(ValueError, match="points"):
-        G.knn(np.zeros((10, 2)), 6)
+        K.knn(np.zeros((10, 2)), 6)
     with pytest.raises(ValueError, match="start_level"):
-        G.knn_with_stats(np.zeros((10, 3)), 6, start_level=19)
-    for k in (0, G.MAX_K + 1, 2.0):
+        K.knn_with_stats(np.zeros((10, 3)), 6, start_level=19)
+    for k in (0, K.MAX_K + 1, 2.0):
         with pytest.raises(ValueError, match="k must"):
-            G.knn(np.zeros((10, 3)), k)
+            K.knn(np.zeros((10, 3)), k)
 
 
 def test_knn_all_points_identical():
     P = np.full((200, 3), 0.25, np.float32)
-    idx, d2 = G.knn(P, 6)
+    idx, d2 = K.knn(P, 6)
     I = np.asarray(idx).reshape(200, 6)
     assert np.all(np.asarray(d2) == 0)
     assert np.all(I != np.arange(200)[:, None])
@@ -230,7 +231,7 @@ def python_mutual(I):
 @pytest.mark.parametrize("k", [1, 6, 8])
 def test_mutual_edges_match_set_construction(variant, rng, k):
     P = np.concatenate([uniform(rng, 1000), clustered(rng, 1000)])
-    idx, d2 = G.knn(P, k)
+    idx, d2 = K.knn(P, k)
     I, _ = check_knn(P, k, idx, d2)
     src, dst = G.mutual_edges(idx, k)
     S, T = np.asarray(src, np.int64), np.asarray(dst, np.int64)
@@ -248,7 +249,7 @@ def test_mutual_edges_match_set_construction(variant, rng, k):
 
 def test_mutual_edges_ignore_padding_and_validate():
     P = np.array([[0, 0, 0], [1, 0, 0], [3, 0, 0]], np.float32)
-    idx, _ = G.knn(P, 6)               # every row padded with self
+    idx, _ = K.knn(P, 6)               # every row padded with self
     src, dst = G.mutual_edges(idx, 6)
     got = set(zip(np.asarray(src).tolist(), np.asarray(dst).tolist()))
     assert got == {(0, 1), (0, 2), (1, 2)}

@@ -196,7 +196,7 @@ def test_state_dict_roundtrip(variant, rng):
 
 
 def test_from_train_config(variant):
-    config = pytest.importorskip("mi_grg.training.config")
+    from mi_grg.training import config
     cfg = config.TrainConfig(lr_position=1e-3, lr_density=2e-2, lr_scale=3e-3,
                              lr_rotation=4e-3, lr_final_ratio=0.5)
     opt = Adam.from_train_config(cfg, max_steps=100)

@@ -39,7 +39,8 @@ _CHUNK_PIXELS = 1 << 22   # slices per SSIM batch: bounds memory to ~10 arrays o
 
 
 def gaussian_window_1d(size: int = WINDOW_SIZE, sigma: float = WINDOW_SIGMA) -> np.ndarray:
-    """Their 1-D window: exp(-(x - size//2)^2 / (2 sigma^2)), normalised to sum 1 (float64)."""
+    """Their 1-D window: exp(-(x - size//2)^2 / (2 sigma^2)), normalised to sum 1 (float64).
+    The one definition: the training loss's SSIM (``mi_grg.training.losses``) uses it too."""
     x = np.arange(size, dtype=np.float64) - size // 2
     g = np.exp(-x * x / (2.0 * sigma * sigma))
     return g / g.sum()

@@ -19,14 +19,12 @@ cuda_ad_mono; the SSIM blur is a ``dr.CustomOp`` whose adjoint is the blur itsel
 """
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-WINDOW_SIZE = 11
-WINDOW_SIGMA = 1.5
+from mi_grg.evaluation.metrics import WINDOW_SIGMA, WINDOW_SIZE, gaussian_window_1d
+
 C1 = 0.01 ** 2
 C2 = 0.03 ** 2
 
@@ -50,13 +48,6 @@ def l1(pred, target) -> "mi.Float":
     if dr.width(a) == 0:
         raise ValueError("l1 of empty arrays")
     return dr.mean(dr.abs(a - b))
-
-
-def gaussian_window_1d(size: int = WINDOW_SIZE, sigma: float = WINDOW_SIGMA) -> list:
-    """exp(-(x - size//2)^2 / (2 sigma^2)) normalised to sum 1, as Python floats."""
-    w = [math.exp(-((x - size // 2) ** 2) / (2.0 * sigma * sigma)) for x in range(size)]
-    s = sum(w)
-    return [x / s for x in w]
 
 
 def _blur_axis(img, n_views, h, w, weights, axis):
@@ -128,7 +119,7 @@ def ssim_map(pred, target, window_size: int = WINDOW_SIZE,
     if window_size < 1 or window_size % 2 == 0:
         raise ValueError(f"window_size must be odd and >= 1, got {window_size}")
     n, h, w = sa
-    wts = gaussian_window_1d(window_size, sigma)
+    wts = [float(x) for x in gaussian_window_1d(window_size, sigma)]
     mu1 = _blur(a, n, h, w, wts)
     mu2 = _blur(b, n, h, w, wts)
     e11 = _blur(a * a, n, h, w, wts)
