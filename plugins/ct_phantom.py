@@ -81,7 +81,7 @@ class CTPhantom(mi.Medium):
         # point p is inside ellipsoid k iff |(p - centre_k) @ M_k|^2 <= 1 (world units)
         self._ellipsoids = [
             ([float(x) for x in origin + scale * c], (np.asarray(b) / scale).tolist(), float(r))
-            for c, b, r in zip(self.phantom.centres, self.phantom._frames(),
+            for c, b, r in zip(self.phantom.centres, self.phantom.frames(),
                                self.phantom.densities)]
         self._box = (origin - scale, origin + scale)
 

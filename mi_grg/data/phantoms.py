@@ -125,8 +125,6 @@ class EllipsoidPhantom:
         ellipsoid k iff ``|(x - c_k) @ B_k|^2 <= 1``."""
         return self.rotations / self.semi_axes[:, None, :]
 
-    _frames = frames   # older spelling, used by plugins/ct_phantom.py
-
     # ------------------------------------------------------------------ density
     def density(self, points, geometry: Geometry) -> np.ndarray:
         """Density at world points ``[..., 3]`` (x, y, z), float64 ``[...]``.
@@ -147,7 +145,7 @@ class EllipsoidPhantom:
 
     def _density_normalised(self, p):
         out = np.zeros(p.shape[0])
-        for c, b, rho in zip(self.centres, self._frames(), self.densities):
+        for c, b, rho in zip(self.centres, self.frames(), self.densities):
             q = (p - c) @ b
             out += np.where(np.einsum("ij,ij->i", q, q) <= 1.0, rho, 0.0)
         return out
@@ -196,7 +194,7 @@ class EllipsoidPhantom:
 
     def _chords(self, o, d, ln):
         out = np.zeros(o.shape[0])
-        for c, b, rho in zip(self.centres, self._frames(), self.densities):
+        for c, b, rho in zip(self.centres, self.frames(), self.densities):
             p = (o - c) @ b      # start point in the unit-sphere frame
             w = d @ b            # direction there (not unit); t stays the world length
             ww = np.einsum("ij,ij->i", w, w)
@@ -253,7 +251,7 @@ class EllipsoidPhantom:
         reach = float(np.linalg.norm(sub, axis=1).max())        # farthest sub-point
         vol = np.zeros(geometry.nVoxel)
         half_ext = _aabb_half_extents(self.semi_axes, self.rotations)
-        for c, b, a, he, rho in zip(self.centres, self._frames(), self.semi_axes, half_ext,
+        for c, b, a, he, rho in zip(self.centres, self.frames(), self.semi_axes, half_ext,
                                     self.densities):
             lip = 1.0 / a.min()     # |grad sqrt(q)| <= 1 / min semi-axis
             rng = [np.nonzero((ax + dv[j] / 2 >= c[j] - he[j]) & (ax - dv[j] / 2 <= c[j] + he[j]))[0]

@@ -77,9 +77,9 @@ class TrainConfig:
     # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
     # eval_every) is the paper's for 30k iterations and is scaled to the run's length
     use_pga: bool = True           # graph term in the densification gradient
-    lambda_g: float = 1e-4         # paper's; at 64^3 its term is ~0.2 % of the gradient
-                                   # term, so PGA barely changes densification
-                                   # (measured: docs/benchmarks.md)
+    lambda_g: float = 1e-4         # paper's; at 64^3 its term is small against the
+                                   # gradient term, so PGA barely changes densification
+                                   # (docs/benchmarks.md)
     densify_interval: int = 100
     densify_start: int = 500
     densify_stop: int = 15000
@@ -88,8 +88,7 @@ class TrainConfig:
     max_gaussians_per_voxel: float = 0.5  # ... and at most this x prod(nVoxel); 0: no such
                                    # cap. Why: past about half the voxel count the extra
                                    # Gaussians cannot add detail the grid resolves, only
-                                   # time (bone 64^3: 246k -> 131k Gaussians, 1074 -> 532 s,
-                                   # 19.77 -> 19.81 dB; docs/benchmarks.md)
+                                   # time (docs/benchmarks.md)
     # --- losses
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05

@@ -6,19 +6,16 @@ of several small drops also stops the run; the caller keeps a state (see below).
 
 ``patience`` is the number of evaluations in a row that must lie below that margin
 (1 = the paper's rule as written). At our scaled schedules (12 evaluations in 1500
-iterations rather than 60 in 30k) the held-out PSNR still rises by about 0.3 dB per
-evaluation late in training and wobbles by +-0.15 dB (0.5 % of 26-30 dB) around that trend,
-so a single dip ended runs that recovered at the next evaluation (shepp 64^3, gr: stopped
-at 1250 of 1500 with 3-D PSNR 29.79 dB; run to the end: 30.57 dB). TrainConfig's default is 2.
+iterations rather than 60 in 30k) the held-out PSNR still rises late in training and
+wobbles around that trend by about the margin itself, so a single dip ended runs that
+recovered at the next evaluation (docs/benchmarks.md, "Measurements behind defaults").
+TrainConfig's default is 2.
 
 Which state to keep (``TrainConfig.keep_state``): the same wobble makes "the state with the
-highest held-out PSNR" an early state by chance. At 128^3 (shepp, gr) the best held-out value
-came at iteration 1375 (28.13 dB, 3-D PSNR 29.69 dB); the last evaluation at 2121 was 0.1 %
-below it (28.09 dB) with 3-D PSNR 30.46 dB. On the 64^3 suite "latest" changed bone (gr
-+0.08, r2 +0.09 dB), cement (r2 +0.10 dB) and mni152 (gr +0.03 dB), and nothing else.
-"latest" (the default) therefore keeps the LATEST state whose value lies within ``drop`` of
-the best (the stop rule's own noise margin: it does not call such a state worse); "best"
-keeps the literal maximum. ``EarlyStopper.kept_iteration`` names the state to hold.
+highest held-out PSNR" an early state by chance, with a worse 3-D PSNR than a later state
+within the margin (docs/benchmarks.md, "Reconstruction"). "latest" (the default) therefore
+keeps the LATEST state whose value lies within ``drop`` of the best (the stop rule's own
+noise margin: it does not call such a state worse); "best" keeps the literal maximum. ``EarlyStopper.kept_iteration`` names the state to hold.
 """
 from __future__ import annotations
 

@@ -32,10 +32,10 @@ Steps and the choices made where the paper is silent:
    sum_j exp(-|x - p_j|^2 / (2 s^2)) over a lattice of spacing a is ~(2 pi)^{3/2} s^3 / a^3
    -- several times 1 -- so unscaled densities would overshoot the volume by that factor.
    R2-Gaussian (and the paper, which follows it) use the empirical 0.15 (default here).
-   For uniformly random centres the 3-NN rule gives s ~ 0.73 x the mean spacing
-   (measured), so the kernels overlap ~8-fold in the interior (sum ~ 7.9) and fewer times
-   near the object's surface: a factor of ~0.13-0.15, which explains R2-Gaussian's
-   constant (the "auto" fit below gave 0.123 for 50k points in a noisy 128^3 ball).
+   For uniformly random centres the 3-NN rule gives scales somewhat below the mean
+   spacing, so the kernels overlap several-fold in the interior and fewer times near the
+   object's surface, which explains R2-Gaussian's constant (docs/benchmarks.md,
+   "Measurements behind defaults").
    ``density_rescale="auto"`` instead picks the factor c minimising
    sum_i (c F_i - v_i)^2, with F_i = sum_j v_j exp(-|p_i - p_j|^2 / (2 s_j^2)) the field
    of the unscaled kernels at the centres and v_i the target values (least squares fit of
@@ -101,10 +101,9 @@ def sigma_d_voxels(sigma_d: float, n_voxel, grid: int = 256) -> float:
 
     ``sigma_d`` is given in voxels of a grid ``grid`` voxels along its longest axis: the
     paper tuned sigma_d = 3 on 256^3 volumes, where it blurs over 3/256 of the volume;
-    the same 3 voxels on a 64^3 grid blur over 4x that length (at 64^3, 22 noisy views,
-    the filtered FDK's correlation with the ground truth is 0.59-0.95 with 3 voxels and
-    0.84-0.98 with 0.75, on shepp, shell, shells and mni152). ``grid`` = 0 takes it in
-    the case's own voxels. Returns sigma_d x max(n_voxel) / grid (or sigma_d)."""
+    the same 3 voxels on a 64^3 grid blur over 4x that length, and the filtered FDK
+    matches the ground truth worse (docs/benchmarks.md, De-Init filter width). ``grid`` = 0
+    takes it in the case's own voxels. Returns sigma_d x max(n_voxel) / grid (or sigma_d)."""
     if not (math.isfinite(sigma_d) and sigma_d >= 0):
         raise InitError(f"sigma_d must be >= 0 voxels, got {sigma_d}")
     if int(grid) != grid or grid < 0:

@@ -75,7 +75,7 @@ def _blur_axis(img, n_views, h, w, weights, axis):
 def _blur_plain(img, n_views, h, w, weights):
     rows = _blur_axis(img, n_views, h, w, weights, 2)
     # Evaluate between the passes: gathers from an unevaluated array would recompute the
-    # whole first pass for each of the second pass's taps (7x slower on a 96^2 image).
+    # whole first pass for each of the second pass's taps (docs/benchmarks.md).
     dr.eval(rows)
     return _blur_axis(rows, n_views, h, w, weights, 1)
 

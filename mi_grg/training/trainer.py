@@ -44,12 +44,11 @@ def iteration_rule(geometry) -> int:
     n = max(nVoxel): 1500 x n / 64 from 64^3 up (128^3 -> 3000, 256^3 -> 6000), and
     1500 x sqrt(n / 64), at least 500, below (48^3 -> 1299, 16^3 -> 750).
 
-    Why linear above 64^3: on shepp 128^3 (25 views of 192^2) the older square-root rule
-    gave 2121 iterations, and the 3-D PSNR was still rising by 0.1 dB per 125 iterations at
-    the end (gr 30.46 dB, r2 30.39 dB); with 3000, gr reached 31.55 dB and r2 31.89 dB
-    (docs/benchmarks.md). At 64^3 (1500) the 3-D PSNR is still rising too, but the time
-    target (5 min per case on 2 cores) leaves no room; fewer is not a free speed-up there:
-    r2 with 1000 iterations scored 26.9 dB against 29.9 dB at 1500. Below 64^3 the square
+    Why linear above 64^3: at 128^3 the older square-root rule stopped while the 3-D PSNR
+    was still rising, and 3000 iterations gained more than a dB (docs/benchmarks.md,
+    "Reconstruction"). At 64^3 (1500) the 3-D PSNR is still rising too, but the time
+    target (5 min per case on 2 cores) leaves no room, and fewer iterations cost several
+    dB there (docs/benchmarks.md, "Measurements behind defaults"). Below 64^3 the square
     root is kept (nothing measured suggests otherwise). The schedule (densification window,
     evaluation interval) scales with it (``_scaled``).
     """
