@@ -419,19 +419,35 @@ def test_seeds_table_pairs_runs_by_seed(tmp_path):
 
 
 def test_table2_rows_each_add_one_component_to_r2(tmp_path):
-    """Each ablation row is r2 plus exactly the options of its component, at gr's values."""
+    """Properties of Table 2's rows (not a copy of them): the first is plain r2, the last
+    plain gr; every row between is r2 with options that move only fields where r2 and gr
+    differ, each to gr's value; no two rows are the same; together they switch on every
+    field in which gr differs from r2. The plan runs the rows in this order, with the
+    suite's options under each row's own."""
+    from mi_grg.lab.experiments import table2_variants
+    rows = table2_variants()
+    r2, gr = make_config("r2").to_dict(), make_config("gr").to_dict()
+    differ = {k for k in gr if gr[k] != r2[k]}
+    assert differ
+    assert rows[0][1:3] == ("r2", {}) and rows[-1][1:3] == ("gr", {})
+    changed_sets = []
+    for run, method, options, label in rows[1:-1]:
+        assert method == "r2", run
+        cfg = make_config("r2", **options).to_dict()
+        changed = {k for k in cfg if cfg[k] != r2[k]}
+        assert changed and changed <= differ, (run, changed - differ)
+        assert all(cfg[k] == gr[k] for k in changed), run
+        changed_sets.append(frozenset(changed))
+    assert len(set(changed_sets)) == len(changed_sets)
+    assert set().union(*changed_sets) == differ
+    assert len({r[0] for r in rows}) == len({r[3] for r in rows}) == len(rows)
+
     raw = json.loads(_suite(tmp_path).read_text())
     raw["experiments"] = {"table2": {"cases": ["shepp"]}}
     path = tmp_path / "t2.json"
     path.write_text(json.dumps(raw))
     runs = {s.run: s for s in plan_experiment("table2", load_suite(path))}
-    assert list(runs) == ["r2", "r2+deinit", "r2+pga", "r2+lap", "r2+graph", "gr"]
-    gr = make_config("gr")
+    assert list(runs) == [r[0] for r in rows]
     base = runs["r2"].options
-    added = {"r2+deinit": {"sigma_d": gr.sigma_d}, "r2+pga": {"use_pga": True},
-             "r2+lap": {"lambda_lap": gr.lambda_lap},
-             "r2+graph": {"use_graph_field": True, "lambda_lap": gr.lambda_lap}}
-    for run, opts in added.items():
-        assert runs[run].method == "r2"
-        assert runs[run].options == {**base, **opts}, run
-    assert runs["gr"].method == "gr" and gr.lambda_lap > 0 and gr.sigma_d > 0
+    for run, method, options, _ in rows[1:-1]:
+        assert runs[run].method == method and runs[run].options == {**base, **options}, run

@@ -24,6 +24,7 @@ def tiny_case():
     return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
 
 
+@pytest.mark.slow
 def test_gr_beats_fdk_and_sart_clearly(tmp_path):
     """The small-case end-to-end check: 48^3 needles, 25 noisy views (about a minute)."""
     geo = default_geometry(n=48, det=72, views=25)
@@ -55,7 +56,10 @@ def test_outputs_log_and_plot(tiny_case, tmp_path):
     assert "iteration budget" in m["method_info"]["stopped_by"]
 
 
+@pytest.mark.slow
 def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
+    """End to end (300 iterations twice; tests/test_checkpoint.py checks the same property
+    on a short run in the fast suite)."""
     # 300 iterations: densification every 25 up to 150, held-out evaluations at 125, 250 and
     # 300; the crash comes at 141, after both, so the checkpoint must carry them.
     cfg = make_config("gr", iterations=300, seed=5, **TINY)
