@@ -66,3 +66,35 @@ def test_shipped_configs_are_complete(tmp_path):
         assert file_method == method
         assert set(values) == set(TrainConfig.__dataclass_fields__)
         assert make_config(method, root / f"{method}_default.xml") == make_config(method)
+
+
+def test_automatic_fields_are_none_in_files_options_and_records(tmp_path):
+    """Fields chosen automatically are None: written as value="none", read from "none" (any
+    case) or an omitted key, and from --option's JSON null or the string none. A 0, which
+    older files used for "automatic", is an error that says what to write instead; configs
+    recorded by earlier runs (checkpoints, metrics.json) read their 0 as None."""
+    from mi_grg.training.config import AUTO_FIELDS, upgrade_config_dict
+    c = make_config("gr")
+    assert all(getattr(c, k) is None for k in AUTO_FIELDS if k != "tv_extent")
+    assert c.tv_extent == 3.0
+    path = tmp_path / "c.xml"
+    write_config_xml(make_config("gr", tv_extent="none", graph_s=0.5), path, method="gr")
+    text = path.read_text()
+    assert '<float name="tv_extent" value="none"/>' in text
+    assert '<float name="graph_s" value="0.5"/>' in text
+    back = make_config("gr", path)
+    assert back.tv_extent is None and back.graph_s == 0.5 and back.iterations is None
+    assert make_config("gr", graph_s=None).graph_s is None
+    assert make_config("gr", iterations="None").iterations is None
+    old = tmp_path / "old.xml"
+    old.write_text('<training><float name="graph_s" value="0.0"/></training>')
+    with pytest.raises(ConfigError, match="graph_s must be > 0 or none.*write none"):
+        make_config("gr", old)
+    with pytest.raises(ConfigError, match="iterations must be > 0 or none"):
+        make_config("gr", iterations=0)
+    with pytest.raises(ConfigError, match="k expects a int"):
+        make_config("gr", k="none")                  # only automatic fields take none
+    recorded = {**make_config("gr").to_dict(), "iterations": 0, "extent": 0.0,
+                "graph_s": 0.0, "log_3d_every": 0, "sigma_d": 0.0}
+    up = upgrade_config_dict(recorded)
+    assert up == {**make_config("gr").to_dict(), "sigma_d": 0.0}   # sigma_d 0 is "off"
