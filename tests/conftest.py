@@ -31,3 +31,21 @@ def small_cone_geometry():
     return mi_grg.Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(24, 32),
                            sDetector=(3.0, 4.0), nVoxel=(16, 16, 16), sVoxel=(2.0, 2.0, 2.0),
                            angles=circular_angles(5))
+
+
+@pytest.fixture
+def crash_after():
+    """crash_after(trainer, n): run ``trainer`` and let it crash (KeyboardInterrupt) in the
+    optimiser step after ``n`` steps, as an interrupted run would."""
+    def run(trainer, n):
+        step, calls = trainer.optimizer.step, [0]
+
+        def crashing_step(*a, **k):
+            calls[0] += 1
+            if calls[0] > n:
+                raise KeyboardInterrupt
+            return step(*a, **k)
+        trainer.optimizer.step = crashing_step
+        with pytest.raises(KeyboardInterrupt):
+            trainer.run()
+    return run

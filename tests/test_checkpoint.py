@@ -77,7 +77,7 @@ class _Views:
         return getattr(self.rng, name)
 
 
-def test_resume_draws_the_same_views_and_continues_the_loss(tiny_case, tmp_path):
+def test_resume_draws_the_same_views_and_continues_the_loss(tiny_case, tmp_path, crash_after):
     """A run interrupted at iteration 47 and resumed from its checkpoint (40) trains on the
     same views in the same order as the uninterrupted run, keeps its log and densifier
     statistics (densification at 50 after the resume), and its loss curve continues the
@@ -88,17 +88,7 @@ def test_resume_draws_the_same_views_and_continues_the_loss(tiny_case, tmp_path)
     full.rng = _Views(full.rng)
     full.run()
 
-    cut = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False)
-    step, calls = cut.optimizer.step, [0]
-
-    def crash_after_47(*a, **k):
-        calls[0] += 1
-        if calls[0] > 47:
-            raise KeyboardInterrupt
-        return step(*a, **k)
-    cut.optimizer.step = crash_after_47
-    with pytest.raises(KeyboardInterrupt):
-        cut.run()
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False), 47)
     resumed = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False, resume=True)
     assert resumed.state.iteration == 40 and len(resumed.state.log) == 40
     assert resumed.densifier.size == full.state.log[39]["n_gaussians"]

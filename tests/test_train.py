@@ -57,7 +57,7 @@ def test_outputs_log_and_plot(tiny_case, tmp_path):
 
 
 @pytest.mark.slow
-def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
+def test_resume_continues_an_interrupted_run(tiny_case, tmp_path, crash_after):
     """End to end (300 iterations twice; tests/test_checkpoint.py checks the same property
     on a short run in the fast suite)."""
     # 300 iterations: densification every 25 up to 150, held-out evaluations at 125, 250 and
@@ -67,17 +67,7 @@ def test_resume_continues_an_interrupted_run(tiny_case, tmp_path):
     full.run()
     ref = full.volume()
 
-    broken = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False)
-    step, calls = broken.optimizer.step, [0]
-
-    def crash_after_140(*a, **k):
-        calls[0] += 1
-        if calls[0] > 140:
-            raise KeyboardInterrupt
-        return step(*a, **k)
-    broken.optimizer.step = crash_after_140
-    with pytest.raises(KeyboardInterrupt):
-        broken.run()
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False), 140)
     resumed = Trainer(tiny_case, cfg, out_dir=tmp_path / "cut", progress=False, resume=True)
     assert resumed.state.iteration == 140          # the last checkpoint
     assert [r["iteration"] for r in resumed.state.log if r.get("heldout_psnr")] == [125]
