@@ -121,14 +121,9 @@ class Trainer:
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         sched = _scaled(cfg, self.iterations)
         self.sched = sched
-        # Views: hold out every n-th one for early stopping (never trained on).
-        n = geo.n_views
-        held = (np.arange(n) % cfg.holdout_every == 0) if cfg.holdout_every else np.zeros(n, bool)
-        if held.all():
-            raise ValueError("holdout_every leaves no training views")
-        self.fit_idx, self.held_idx = np.flatnonzero(~held), np.flatnonzero(held)
+        self.fit_idx, self.held_idx = self._split_views()
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
-                        for i in range(n)]
+                        for i in range(geo.n_views)]
         # The config's window and cap are the paper's; this run's depend on its length and grid.
         dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
                                    start=sched["densify_start"],
@@ -214,17 +209,6 @@ class Trainer:
         return project_dr(g, self.case.geometry, angles=angles, extent=self.extent,
                           density_scale=density_scale, means2d=means2d)
 
-    def _heldout_psnr(self, raw) -> float | None:
-        if len(self.held_idx) == 0:
-            return None
-        from mi_grg.evaluation.metrics import psnr_proj
-        with dr.suspend_grad():
-            g = Gaussians.from_raw(raw)
-            img = self._project(g, self.case.geometry.angles[self.held_idx],
-                                self._density_scale)
-            pred = np.asarray(img.numpy())
-        return float(psnr_proj(pred, self.case.train[self.held_idx]))
-
     def volume(self, raw=None, density_scale=None) -> np.ndarray:
         """The reconstruction [x, y, z]: the Gaussian field voxelised at voxel centres.
 
@@ -267,7 +251,8 @@ class Trainer:
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            last_psnr = self._evaluate(it, raw, row, last_psnr)
+            self._evaluate(it, raw, row)
+            last_psnr = row.get("heldout_psnr", last_psnr)
             st.log.append(row)
             bar.update(1)
             bar.set_postfix(loss=f"{loss_value:.4f}", N=row["n_gaussians"],
@@ -337,12 +322,12 @@ class Trainer:
             raw = carry_density_scale(raw, old_scale, self._density_scale, info["source"])
         return raw
 
-    def _evaluate(self, it: int, raw: dict, row: dict, last_psnr):
+    def _evaluate(self, it: int, raw: dict, row: dict) -> None:
         """Logging and early stopping at this iteration: the 3-D PSNR (research logging,
         when there is a ground truth and it is due) and, every ``eval_every`` iterations
         and at the last, the held-out views' PSNR, which the stopper judges once
-        densification has ended (``monitor_3d``: the 3-D PSNR instead). Fills ``row``;
-        returns the latest held-out PSNR."""
+        densification has ended (``monitor_3d``: the 3-D PSNR instead). Fills ``row``
+        (psnr_3d, heldout_psnr) and, on a stop, the state's ``stopped_by``."""
         cfg, st = self.cfg, self.state
         is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
         want_3d = self.case.vol_gt is not None and (
@@ -356,10 +341,9 @@ class Trainer:
                                            self.case.vol_gt))
             self._t_start += time.perf_counter() - t3
         if not is_eval:
-            return last_psnr
-        last_psnr = self._heldout_psnr(raw)
-        row["heldout_psnr"] = last_psnr
-        watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr
+            return
+        row["heldout_psnr"] = self._heldout_psnr(raw)
+        watched = row.get("psnr_3d") if cfg.monitor_3d else row["heldout_psnr"]
         # Densification reshapes the model; judge (and keep) states only after it.
         if watched is not None and it >= self.sched["densify_stop"]:
             if cfg.monitor_3d:
@@ -371,7 +355,6 @@ class Trainer:
                 st.kept_density_scale = None if ds is None else mi.Float(ds)
             elif verdict == "stop":
                 st.stopped_by = self.stopper.reason
-        return last_psnr
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint_path is not None:
@@ -414,6 +397,29 @@ class Trainer:
             g.save_npz(self.out / "gaussians.npz")
             save_ply(g, self.out / "gaussians.ply")
         return summary
+
+    # ------------------------------------------------------------------ held-out views
+    def _split_views(self):
+        """(fitting views, held-out views) as index arrays: every ``holdout_every``-th view
+        is held out for early stopping and never trained on (0: none). They are used by
+        ``_heldout_psnr`` (in ``_evaluate``) and, after an early stop, ``_refit``."""
+        n, every = self.case.geometry.n_views, self.cfg.holdout_every
+        held = (np.arange(n) % every == 0) if every else np.zeros(n, bool)
+        if held.all():
+            raise ValueError("holdout_every leaves no training views")
+        return np.flatnonzero(~held), np.flatnonzero(held)
+
+    def _heldout_psnr(self, raw) -> float | None:
+        """Mean PSNR of the held-out views' projections of ``raw`` (None without any)."""
+        if len(self.held_idx) == 0:
+            return None
+        from mi_grg.evaluation.metrics import psnr_proj
+        with dr.suspend_grad():
+            g = Gaussians.from_raw(raw)
+            img = self._project(g, self.case.geometry.angles[self.held_idx],
+                                self._density_scale)
+            pred = np.asarray(img.numpy())
+        return float(psnr_proj(pred, self.case.train[self.held_idx]))
 
     def _refit(self, raw, n_iter: int):
         """Brief refit on all views (held-out ones included) after early stopping."""
