@@ -171,6 +171,10 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     del m["method_info"]["config"]["rebuild_keeps_field"]
     (run_dir / "metrics.json").write_text(json.dumps(m))
     assert stale_options(run_dir) == ["tv_every"]
+    # configs recorded before "automatic" was None spelt it 0: still the same run
+    m["method_info"]["config"].update(extent=0.0, graph_s=0.0, log_3d_every=0)
+    (run_dir / "metrics.json").write_text(json.dumps(m))
+    assert stale_options(run_dir) == ["tv_every"]
     # ... any other absent field is stale (the run cannot say what it used)
     del m["method_info"]["config"]["keep_state"]
     (run_dir / "metrics.json").write_text(json.dumps(m))

@@ -7,7 +7,7 @@ Resuming from it continues the run where it stopped (the same views, the same
 densification decisions up to float-atomic order). Files are written atomically: a crash
 while writing leaves the previous checkpoint.
 
-File layout (one ``.npz``; unchanged since checkpoints were introduced, so older files
+File layout (one ``.npz``; the same as before this module existed, so older files
 load): ``raw__<key>`` / ``kept__<key>`` parameter arrays, ``kept_density_scale``,
 ``graph_positions`` [N, 3], ``adam_m__<group>`` / ``adam_v__<group>`` [N, C],
 ``dens_grad`` / ``dens_count`` [N] and ``meta`` (JSON: iteration, rng, log, stopper,
