@@ -195,6 +195,10 @@ def add_experiment_parser(subparsers) -> None:
     e.add_argument("--methods", help="comma-separated methods to keep (e.g. fdk,sart)")
     e.add_argument("--cases", help="comma-separated case names to keep")
     e.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
+    e.add_argument("--dask", metavar="ADDRESS", help="run on the Dask cluster of this "
+                   "scheduler (tcp://host:8786); OUT must be shared with its workers")
+    e.add_argument("--threads-per-run", type=int, help="Dr.Jit threads of each run (default: "
+                   "cores // jobs here, 1 with --dask)")
     e.set_defaults(func=cmd_experiment)
     r = subparsers.add_parser("report", help="write docs/results.md from a results directory")
     r.add_argument("--out", required=True, help="results directory (as given to experiment)")
@@ -205,7 +209,8 @@ def add_experiment_parser(subparsers) -> None:
 def cmd_experiment(args) -> int:
     from mi_grg.lab.runner import run_experiment
     res = run_experiment(args.name, args.suite, args.out, jobs=args.jobs,
-                         methods=args.methods, cases=args.cases, dry_run=args.dry_run)
+                         methods=args.methods, cases=args.cases, dry_run=args.dry_run,
+                         dask=args.dask, threads_per_run=args.threads_per_run)
     if args.dry_run:
         for r in res["runs"]:
             extra = f" -> {r['target']}" if "target" in r else ""

@@ -3,6 +3,7 @@ resumable, parallel runner.
 
     mi-grg experiment NAME --suite experiments/suite_cpu.json --out results/cpu [--jobs N]
                            [--methods a,b] [--cases x,y] [--dry-run]
+                           [--dask tcp://HOST:8786] [--threads-per-run T]
     mi-grg report --out results/cpu [--report docs/results.md]
 
 NAME is one of ``EXPERIMENTS`` or "all" (the experiments the suite's ``experiments`` block
@@ -28,7 +29,8 @@ instead of running again. ``OUT/<experiment>/runs.json`` is rewritten as runs fi
 
 Runs execute in spawned worker processes (Dr.Jit is not fork-safe), one fresh process per
 run, ``jobs`` at a time, each with ``cores // jobs`` Dr.Jit threads. A failing run writes
-error.txt and does not stop the others.
+error.txt and does not stop the others. With ``--dask`` they are tasks on a Dask cluster
+instead, OUT shared with its workers (``mi_grg.lab.cluster``; experiments/README.md).
 """
 from __future__ import annotations
 
@@ -134,32 +136,41 @@ def _run_task(task: dict) -> dict:
 
 
 def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
-             on_result=None) -> list:
-    """Run ``func(task)`` for every task in fresh spawned processes, ``jobs`` at a time.
-
-    A worker that dies (segfault, OOM kill) breaks the pool; its unfinished tasks are then
-    retried one per pool, so a crashing run only fails itself. ``on_result(i, result)`` is
-    called as each task finishes."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
+             on_result=None, client=None) -> list:
+    """Run ``func(task)`` for every task: in fresh spawned processes here, ``jobs`` at a
+    time, or, given a ``distributed.Client``, one Dask task each on its cluster
+    (``mi_grg.lab.cluster``). ``on_result(i, result)`` is called, in this process, as each
+    task finishes; a task that cannot finish is a failed result, never an exception."""
     from tqdm import tqdm
     results = [None] * len(tasks)
-    ctx = mp.get_context("spawn")
     bar = tqdm(total=len(tasks), desc=desc, disable=not progress, dynamic_ncols=True)
     failed = 0
-
-    def record(i, res):
-        nonlocal failed
+    if client is None:
+        finished = _run_local(func, tasks, jobs)
+    else:
+        from mi_grg.lab.cluster import run_on_cluster
+        counted = [{**t, "attempts_file": str(_attempts_file(t))} for t in tasks]
+        finished = run_on_cluster(client, func, counted, desc)
+    for i, res in finished:
         results[i] = res
         failed += res["status"] != "ok"
         if on_result is not None:
             on_result(i, res)
         bar.update(1)
         bar.set_postfix(failed=failed, refresh=False)
+    bar.close()
+    return results
 
-    pending = list(range(len(tasks)))
-    rounds = [(pending, jobs)]
+
+def _run_local(func, tasks: list, jobs: int):
+    """Yield (i, func(tasks[i])) as tasks finish in fresh spawned processes, ``jobs`` at a
+    time. A worker that dies (segfault, OOM kill) breaks the pool; its unfinished tasks are
+    then retried one per pool, so a crashing run only fails itself."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+    ctx = mp.get_context("spawn")
+    rounds = [(list(range(len(tasks))), jobs)]
     while rounds:
         idx, n = rounds.pop(0)
         broken = []
@@ -169,19 +180,26 @@ def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
             for fut in as_completed(futs):
                 i = futs[fut]
                 try:
-                    record(i, fut.result())
+                    yield i, fut.result()
                 except BrokenProcessPool:
                     broken.append(i)
                 except Exception as e:  # pickling errors etc.
-                    record(i, {"status": "failed", "error": f"{type(e).__name__}: {e}"})
+                    yield i, {"status": "failed", "error": f"{type(e).__name__}: {e}"}
         if len(idx) > 1:   # cannot tell which task crashed: retry each alone
             rounds.extend(([i], 1) for i in broken)
         else:
             for i in broken:
-                record(i, {"status": "failed", "error": "worker process died (crash or "
-                                                        "out of memory)"})
-    bar.close()
-    return results
+                yield i, {"status": "failed",
+                          "error": "worker process died (crash or out of memory)"}
+
+
+def _attempts_file(task: dict) -> Path:
+    """Where a cluster task counts its starts: in the run's directory, or beside the data
+    set it simulates."""
+    if "run_dir" in task:
+        return Path(task["run_dir"]) / "attempts.txt"
+    data = Path(task["data_dir"])
+    return data.with_name(data.name + ".attempts.txt")
 
 
 def stale_options(run_dir: Path) -> list:
@@ -258,7 +276,8 @@ def default_jobs(variant: str, n_tasks: int) -> int:
 
 
 def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, methods=None,
-                   dry_run: bool = False, cases=None, progress: bool = True) -> dict:
+                   dry_run: bool = False, cases=None, progress: bool = True,
+                   dask: str | None = None, threads_per_run: int | None = None) -> dict:
     """Plan and run experiment ``name`` (or "all") of the suite into ``out_dir``.
 
     Args:
@@ -268,6 +287,11 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         jobs: parallel worker processes (None: ``default_jobs``).
         methods, cases: optional lists (or comma-separated strings) restricting the runs.
         dry_run: only plan; nothing is simulated or run.
+        dask: address of a Dask scheduler (``tcp://host:8786``): the data sets and then the
+            runs are Dask tasks on its cluster (``mi_grg.lab.cluster``) instead of local
+            processes; OUT must be on a file system the workers share.
+        threads_per_run: Dr.Jit threads of each run (LLVM variant; default: cores // jobs
+            here, 1 on a cluster).
     Returns:
         {"planned", "done_before", "linked", "ran", "failed", "runs": [per-run dicts]}.
     """
@@ -281,7 +305,8 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
     else:
         names = [name]
     specs = [s for n in names for s in plan_experiment(n, suite, methods, cases)]
-    out = Path(out_dir)
+    # the workers of a cluster may start elsewhere: they get absolute paths
+    out = Path(out_dir).absolute() if dask else Path(out_dir)
     index = _index_done(out) if out.exists() else {}
     rows, todo, first_of = [], [], {}
     for s in specs:
@@ -313,87 +338,107 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
                         for k in ("done before", "linked", "duplicate", "todo")})
         return summary
 
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "suite.json").write_text(Path(suite.path).read_text())
-    n_jobs = jobs or default_jobs(suite.variant, max(len(todo), len(datas), 1))
-    cores = os.cpu_count() or 1
+    if threads_per_run is not None and threads_per_run < 1:
+        raise ValueError(f"threads_per_run must be >= 1, got {threads_per_run}")
+    client = None
+    if dask:
+        if jobs is not None:
+            raise ValueError("jobs sets the local worker processes; with dask the cluster's "
+                             "workers run the tasks (leave jobs out)")
+        from mi_grg.lab.cluster import connect
+        client = connect(dask)     # before anything is written: an unreachable one leaves none
+    # closed on the way out, failure or not (the cluster's queued tasks are cancelled)
+    with client if client is not None else contextlib.nullcontext():
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "suite.json").write_text(Path(suite.path).read_text())
+        if client is None:
+            n_jobs = jobs or default_jobs(suite.variant, max(len(todo), len(datas), 1))
+            where = {"jobs": n_jobs}
+        else:
+            n_jobs = None
+            where = {"dask": str(dask), "threads_per_run": threads_per_run or 1}
+        cores = os.cpu_count() or 1
 
-    def base_task(n_parallel):
-        return {"variant": suite.variant, "extra": suite.extra_methods,
-                "threads": max(1, cores // max(1, n_parallel))
-                if suite.variant.startswith("llvm") else None}
+        def base_task(n_parallel):
+            threads = threads_per_run or (1 if client is not None
+                                          else max(1, cores // max(1, n_parallel)))
+            return {"variant": suite.variant, "extra": suite.extra_methods,
+                    "threads": threads if suite.variant.startswith("llvm") else None}
 
-    sim_failed = set()
-    if datas:
-        tasks = [{**base_task(min(n_jobs, len(datas))), "case": dataclasses.asdict(c),
-                  "data_dir": str(out / "data" / dn)} for dn, c in datas.items()]
-        res = _execute(_simulate_task, tasks, n_jobs, "simulate", progress)
-        sim_failed = {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
-    for s in todo:   # write specs first: a run in progress is recognisable on disk
-        d = s.run_dir(out)
-        if d.is_symlink():            # linked to a run that is stale now: run it here
-            d.unlink()
-        for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
-            (d / old).unlink(missing_ok=True)
-        d.mkdir(parents=True, exist_ok=True)
-        (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
-                                                    indent=2, default=str))
-    runnable = [s for s in todo if s.case.data_dir_name not in sim_failed]
-    # Longest first, so that no long run starts last and leaves the other workers idle.
-    runnable.sort(key=lambda s: -expected_cost(s, out))
-    tasks = [{**base_task(min(n_jobs, len(runnable))), "run_dir": str(s.run_dir(out)),
-              "data_dir": str(s.data_dir(out)), "method": s.method, "options": s.options}
-             for s in runnable]
-    row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
+        sim_failed = set()
+        if datas:
+            tasks = [{**base_task(min(n_jobs or 1, len(datas))),
+                      "case": dataclasses.asdict(c), "data_dir": str(out / "data" / dn)}
+                     for dn, c in datas.items()]
+            res = _execute(_simulate_task, tasks, n_jobs, "simulate", progress, client=client)
+            sim_failed = {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
+        for s in todo:   # write specs first: a run in progress is recognisable on disk
+            d = s.run_dir(out)
+            if d.is_symlink():            # linked to a run that is stale now: run it here
+                d.unlink()
+            for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
+                (d / old).unlink(missing_ok=True)
+            d.mkdir(parents=True, exist_ok=True)
+            (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
+                                                        indent=2, default=str))
+        runnable = [s for s in todo if s.case.data_dir_name not in sim_failed]
+        # Longest first, so that no long run starts last and leaves the other workers idle.
+        runnable.sort(key=lambda s: -expected_cost(s, out))
+        tasks = [{**base_task(min(n_jobs or 1, len(runnable))),
+                  "run_dir": str(s.run_dir(out)), "data_dir": str(s.data_dir(out)),
+                  "method": s.method, "options": s.options} for s in runnable]
+        row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
 
-    def finish(key, r):
-        s, row = row_of[key]
-        row.update({"status": "ran" if r["status"] == "ok" else "failed",
-                    **{k: v for k, v in r.items() if k != "status"}})
-        err = s.run_dir(out) / "error.txt"
-        if r["status"] != "ok" and not err.exists():   # the worker died before writing
-            err.write_text(str(r.get("error")) + "\n")
+        def finish(key, r):
+            s, row = row_of[key]
+            row.update({"status": "ran" if r["status"] == "ok" else "failed",
+                        **{k: v for k, v in r.items() if k != "status"}})
+            err = s.run_dir(out) / "error.txt"
+            if r["status"] != "ok" and not err.exists():   # the worker died before writing
+                err.write_text(str(r.get("error")) + "\n")
 
-    def write_index(final: bool) -> None:
-        # While runs go on, only finished rows are written: a killed runner leaves a
-        # runs.json of everything that completed (the report reads it as it is).
-        for n in names:
-            mine = [r for r in rows if r["experiment"] == n
-                    and (final or r["status"] in ("done before", "ran", "failed"))]
-            if mine or final:
-                _write_runs_json(out / n, n, suite, mine,
-                                 experiment_command(n, suite.path, out, methods, cases), n_jobs)
+        def write_index(final: bool) -> None:
+            # While runs go on, only finished rows are written: a killed runner leaves a
+            # runs.json of everything that completed (the report reads it as it is).
+            for n in names:
+                mine = [r for r in rows if r["experiment"] == n
+                        and (final or r["status"] in ("done before", "ran", "failed"))]
+                if mine or final:
+                    command = experiment_command(n, suite.path, out, methods, cases)
+                    _write_runs_json(out / n, n, suite, mine, command, where)
 
-    def on_result(i, r):
-        finish(runnable[i].key(), r)
-        write_index(final=False)
+        def on_result(i, r):
+            finish(runnable[i].key(), r)
+            write_index(final=False)
 
-    if tasks:
-        _execute(_run_task, tasks, n_jobs, name, progress, on_result=on_result)
-    for s in todo:
-        if s.case.data_dir_name in sim_failed:
-            msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
-            (s.run_dir(out) / "error.txt").write_text(msg + "\n")
-            finish(s.key(), {"status": "failed", "error": msg})
-    for s, row in zip(specs, rows):
-        if row["status"] in ("linked", "duplicate"):
-            target = Path(row["target"])
-            if _is_done(target):
-                _link(s.run_dir(out), target)
-                row["status"] = "linked"
-            else:
-                row["status"] = "failed"
-                row["error"] = f"identical run {target} failed"
-    write_index(final=True)
-    summary.update({k: sum(r["status"] == k for r in rows)
-                    for k in ("done before", "linked", "ran", "failed")})
-    return summary
+        if tasks:
+            _execute(_run_task, tasks, n_jobs, name, progress, on_result=on_result,
+                     client=client)
+        for s in todo:
+            if s.case.data_dir_name in sim_failed:
+                msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
+                (s.run_dir(out) / "error.txt").write_text(msg + "\n")
+                finish(s.key(), {"status": "failed", "error": msg})
+        for s, row in zip(specs, rows):
+            if row["status"] in ("linked", "duplicate"):
+                target = Path(row["target"])
+                if _is_done(target):
+                    _link(s.run_dir(out), target)
+                    row["status"] = "linked"
+                else:
+                    row["status"] = "failed"
+                    row["error"] = f"identical run {target} failed"
+        write_index(final=True)
+        summary.update({k: sum(r["status"] == k for r in rows)
+                        for k in ("done before", "linked", "ran", "failed")})
+        return summary
 
 
 def _write_runs_json(exp_dir: Path, name: str, suite: Suite, rows: list, command: str,
-                     jobs: int) -> None:
+                     where: dict) -> None:
     """Merge ``rows`` into EXP/runs.json (runs of earlier invocations with other
-    --methods / --cases filters are kept; the same (case, run) is replaced)."""
+    --methods / --cases filters are kept; the same (case, run) is replaced). ``where`` says
+    where they ran: {"jobs": N} here, {"dask": address, "threads_per_run": T} on a cluster."""
     exp_dir.mkdir(parents=True, exist_ok=True)
     path = exp_dir / "runs.json"
     old = {}
@@ -407,7 +452,7 @@ def _write_runs_json(exp_dir: Path, name: str, suite: Suite, rows: list, command
     commands = [c for c in old.get("commands", []) if c != command] + [command]
     path.write_text(json.dumps(
         {"experiment": name, "suite": suite.path, "suite_name": suite.name,
-         "variant": suite.variant, "commands": commands, "jobs": jobs,
+         "variant": suite.variant, "commands": commands, **where,
          "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": list(merged.values())},
         indent=2, default=str))
 
