@@ -130,7 +130,7 @@ def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
     import mi_grg.lab.runner as ex
     suite = _suite(tmp_path)
 
-    def first_then_killed(func, tasks, jobs, desc, progress, on_result=None):
+    def first_then_killed(func, tasks, jobs, desc, progress, on_result=None, client=None):
         threads = dr.thread_count()
         try:
             if on_result is None:              # simulating the data: all of it
