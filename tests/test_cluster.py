@@ -103,7 +103,7 @@ def test_smoke_suite_on_cluster_matches_local(cluster, tmp_path):
     t0 = time.perf_counter()
     local = run_experiment("table1", SMOKE, tmp_path / "local", jobs=2, progress=False)
     assert local["ran"] == 8 and local["failed"] == 0
-    assert time.perf_counter() - t0 < 600           # <= 2 min on an idle 2-core CPU
+    assert time.perf_counter() - t0 < 600   # loose: the test machine is shared (1 CPU-min in all)
     out = tmp_path / "dask"
     res = run_experiment("table1", SMOKE, out, progress=False,
                          dask=cluster.scheduler_address)
