@@ -50,7 +50,7 @@ _LAZY = {
     "load_ply": "mi_grg.data.ply",
     "render_crosscheck": "mi_grg.evaluation.crosscheck",
     "simulate_volume_case": "mi_grg.data.volume_phantom",
-    "run_experiment": "mi_grg.lab.experiments",
+    "run_experiment": "mi_grg.lab.runner",
     "write_report": "mi_grg.lab.report",
     "load_scan": "mi_grg.data.scene",
     "Scan": "mi_grg.data.scene",

@@ -1,4 +1,5 @@
-"""``mi-grg``: simulate, reconstruct, render (path-traced cross-check) and demo."""
+"""``mi-grg``: simulate, reconstruct, render (path-traced cross-check), experiment suites and
+their report, and demo."""
 from __future__ import annotations
 
 import argparse
@@ -180,6 +181,62 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def add_experiment_parser(subparsers) -> None:
+    """Add the ``experiment`` and ``report`` sub-commands to an argparse subparsers."""
+    from mi_grg.lab import runner
+    from mi_grg.lab.suite import EXPERIMENTS
+    e = subparsers.add_parser("experiment", help="run a scripted experiment of a suite",
+                              description=runner.__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    e.add_argument("name", choices=(*EXPERIMENTS, "all"))
+    e.add_argument("--suite", required=True, help="suite JSON (experiments/suite_cpu.json)")
+    e.add_argument("--out", required=True, help="results directory")
+    e.add_argument("--jobs", type=int, help="parallel runs (default: cores; 1 on a GPU)")
+    e.add_argument("--methods", help="comma-separated methods to keep (e.g. fdk,sart)")
+    e.add_argument("--cases", help="comma-separated case names to keep")
+    e.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
+    e.add_argument("--dask", metavar="ADDRESS", help="run on the Dask cluster of this "
+                   "scheduler (tcp://host:8786); OUT must be shared with its workers")
+    e.add_argument("--threads-per-run", type=int, help="Dr.Jit threads of each run (default: "
+                   "cores // jobs here, 1 with --dask)")
+    e.set_defaults(func=cmd_experiment)
+    r = subparsers.add_parser("report", help="write docs/results.md from a results directory")
+    r.add_argument("--out", required=True, help="results directory (as given to experiment)")
+    r.add_argument("--report", default="docs/results.md", help="markdown file to write")
+    r.set_defaults(func=cmd_report)
+
+
+def cmd_experiment(args) -> int:
+    from mi_grg.lab.runner import run_experiment
+    res = run_experiment(args.name, args.suite, args.out, jobs=args.jobs,
+                         methods=args.methods, cases=args.cases, dry_run=args.dry_run,
+                         dask=args.dask, threads_per_run=args.threads_per_run)
+    if args.dry_run:
+        for r in res["runs"]:
+            extra = f" -> {r['target']}" if "target" in r else ""
+            if r.get("stale"):
+                extra += f" (ran with other defaults: {', '.join(r['stale'])})"
+            print(f"{r['status']:12s} {r['experiment']}/{r['case']}/{r['run']}  "
+                  f"[{r['method']} {json.dumps(r['options'])}]{extra}")
+        print(f"{res['planned']} runs: {res.get('todo', 0)} to run, "
+              f"{res.get('done before', 0)} done, {res.get('linked', 0) + res.get('duplicate', 0)}"
+              f" shared; data to simulate: {', '.join(res['to_simulate']) or 'none'}")
+        return 0
+    print(f"{res['planned']} runs: {res['ran']} ran, {res['failed']} failed, "
+          f"{res['done before']} done before, {res['linked']} linked -> {args.out}")
+    for r in res["runs"]:
+        if r["status"] == "failed":
+            print(f"  FAILED {r['experiment']}/{r['case']}/{r['run']}: {r.get('error')}")
+    return 1 if res["failed"] else 0
+
+
+def cmd_report(args) -> int:
+    from mi_grg.lab.report import write_report
+    path = write_report(args.out, args.report)
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mi_grg.data.phantoms import PHANTOMS
     p = argparse.ArgumentParser(prog="mi-grg", description=__doc__)
@@ -227,7 +284,6 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", required=True)
     q.set_defaults(func=cmd_render)
 
-    from mi_grg.lab.experiments import add_experiment_parser
     add_experiment_parser(sub)  # `experiment NAME --suite FILE --out DIR` and `report`
 
     d = sub.add_parser("demo", help="built-in example: simulate Shepp-Logan, reconstruct")

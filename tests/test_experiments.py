@@ -1,4 +1,4 @@
-"""mi_grg.lab.experiments / mi_grg.lab.report end to end on a tiny suite (16^3, 4 views, fdk + sart):
+"""mi_grg.lab (suite, plan, runner, report) end to end on a tiny suite (16^3, 4 views, fdk + sart):
 resumability, parallel = serial, failure isolation, and a report whose numbers are read back
 independently from metrics.json."""
 import json
@@ -10,10 +10,11 @@ import pytest
 
 import mi_grg
 from mi_grg.training.config import make_config
-from mi_grg.lab.experiments import (EXPERIMENTS, SuiteError, expected_cost, load_suite,
-                                plan_experiment, run_experiment, stale_options)
+from mi_grg.lab.plan import plan_experiment
 from mi_grg.lab.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
-                           summary_lines, write_report)
+                               summary_lines, write_report)
+from mi_grg.lab.runner import expected_cost, run_experiment, stale_options
+from mi_grg.lab.suite import EXPERIMENTS, SuiteError, load_suite
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -126,10 +127,10 @@ def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
     """runs.json is written as runs finish: a runner killed after the first run has
     recorded it (and nothing it did not finish)."""
     import drjit as dr
-    import mi_grg.lab.experiments as ex
+    import mi_grg.lab.runner as ex
     suite = _suite(tmp_path)
 
-    def first_then_killed(func, tasks, jobs, desc, progress, on_result=None):
+    def first_then_killed(func, tasks, jobs, desc, progress, on_result=None, client=None):
         threads = dr.thread_count()
         try:
             if on_result is None:              # simulating the data: all of it
@@ -428,7 +429,7 @@ def test_table2_rows_each_add_one_component_to_r2(tmp_path):
     differ, each to gr's value; no two rows are the same; together they switch on every
     field in which gr differs from r2. The plan runs the rows in this order, with the
     suite's options under each row's own."""
-    from mi_grg.lab.experiments import table2_variants
+    from mi_grg.lab.plan import table2_variants
     rows = table2_variants()
     r2, gr = make_config("r2").to_dict(), make_config("gr").to_dict()
     differ = {k for k in gr if gr[k] != r2[k]}

@@ -1,2 +1,3 @@
-"""Scripted experiments: suites of cases and methods, their run plan and runner, and the
-report written from their results."""
+"""Scripted experiments: the suite of cases (suite), the paper's experiments as run plans
+(plan), the curve-logging methods they add (curves), the resumable runner (runner) here or
+on a Dask cluster (cluster), and the report written from their results (report)."""

@@ -2,7 +2,7 @@
 
     mi-grg report --out results/cpu --report docs/results.md
 
-Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.lab.experiments``) and each run's
+Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.lab.runner``) and each run's
 ``metrics.json`` / ``train_log.csv`` / ``progress_log.csv``; writes the markdown file and
 its PNGs under ``<report dir>/img/results/``. Only numbers found in those files appear in
 our tables; a missing or failed run shows as "—". The paper's numbers are transcribed from
@@ -621,7 +621,7 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
-    from mi_grg.lab.experiments import stale_keys
+    from mi_grg.training.config import stale_keys
     older = {}
     for exp, rows in all_rows.items():
         for r in rows:
@@ -693,7 +693,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     t2 = all_rows.get("table2")
     md += ["## Table 2: ablation", ""]
     if t2:
-        from mi_grg.lab.experiments import table2_variants
+        from mi_grg.lab.plan import table2_variants
         h, b = _runs_summary(t2, [run for run, *_ in table2_variants()])
         md += [_md_table(h, b), ""]
     else:

@@ -38,7 +38,7 @@ PRESETS = {
 
 # Fields added after runs had been made, with the value that reproduces the behaviour
 # from before they existed: a finished run whose recorded config lacks one of them was
-# made with this value (mi_grg.lab.experiments.stale_keys). A field added with a default
+# made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
 ADDED_LATER = {"rebuild_keeps_field": False}
 
@@ -267,3 +267,23 @@ def make_config(method: str = "gr", path=None, **overrides) -> TrainConfig:
     for key, value in overrides.items():
         values[key] = _coerce(key, value)
     return TrainConfig(**values)
+
+
+def stale_keys(m: dict) -> list:
+    """Training options of a finished r2/gr run (its metrics.json, read into ``m``) whose
+    recorded values differ from what this code resolves the run's options to (a default
+    changed since it ran; a field in ``ADDED_LATER`` that the record lacks counts as its old
+    value); [] if none differ or the run is not a training run."""
+    used = (m.get("method_info") or {}).get("config")
+    if m.get("method") not in PRESETS or not isinstance(used, dict):
+        return []
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    opts = upgrade_config_dict({k: v for k, v in (m.get("options") or {}).items()
+                                if k in names})
+    try:
+        now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
+    except Exception:  # noqa: BLE001 (an option this code no longer accepts)
+        return ["config"]
+    used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
+    return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
+

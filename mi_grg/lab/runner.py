@@ -1,0 +1,467 @@
+"""Scripted experiments: a suite of cases (JSON), the paper's experiments as run plans, and a
+resumable, parallel runner.
+
+    mi-grg experiment NAME --suite experiments/suite_cpu.json --out results/cpu [--jobs N]
+                           [--methods a,b] [--cases x,y] [--dry-run]
+                           [--dask tcp://HOST:8786] [--threads-per-run T]
+    mi-grg report --out results/cpu [--report docs/results.md]
+
+NAME is one of ``EXPERIMENTS`` or "all" (the experiments the suite's ``experiments`` block
+lists, or every one when it lists none):
+    table1      every method x every case (3-D PSNR / SSIM, time)
+    table2      ablation: r2, r2 + De-Init, r2 + PGA, r2 + Laplacian, r2 + graph field &
+                Laplacian, gr
+    table3      sweeps of k (kNN graph) and sigma_d (De-Init filter)
+    iterations  held-out-view PSNR and 3-D PSNR against iteration, early stop marked
+    speed       3-D PSNR against wall-clock time for every method
+    views       10 / 25 / 50 / 75 training views
+    seeds       r2 and gr with several training seeds (default 0, 1, 2): the run-to-run
+                spread that a difference between the two must exceed to count
+
+Layout: ``OUT/data/<case>/`` (simulated once, R2-Gaussian layout, reused),
+``OUT/<experiment>/<case>/<run>/`` (the reconstruction contract's files plus run_spec.json,
+log.txt, and error.txt on failure), ``OUT/<experiment>/runs.json`` (status of every run),
+``OUT/suite.json`` (the suite last run). A run whose metrics.json exists is not rerun,
+unless it is an r2/gr run whose recorded training config differs from what this code
+resolves its options to (a default changed since: ``stale_options``); a run identical to
+one done elsewhere in OUT (same data, method and options) becomes a relative symlink to it
+instead of running again. ``OUT/<experiment>/runs.json`` is rewritten as runs finish.
+
+Runs execute in spawned worker processes (Dr.Jit is not fork-safe), one fresh process per
+run, ``jobs`` at a time, each with ``cores // jobs`` Dr.Jit threads. A failing run writes
+error.txt and does not stop the others. With ``--dask`` they are tasks on a Dask cluster
+instead, OUT shared with its workers (``mi_grg.lab.cluster``; experiments/README.md).
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import inspect
+import json
+import os
+import shutil
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from mi_grg.lab.curves import register_experiment_methods
+from mi_grg.lab.plan import RunSpec, plan_experiment
+from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
+from mi_grg.training.config import stale_keys
+
+
+def _worker_setup(variant: str, threads: int | None, extra: dict) -> None:
+    import mi_grg
+    if mi_grg.variant() != variant:
+        mi_grg.set_variant(variant)
+    if threads:
+        import drjit as dr
+        dr.set_thread_count(int(threads))
+    register_experiment_methods(extra)
+
+
+@contextlib.contextmanager
+def _logged(path: Path):
+    with open(path, "a") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+        yield
+
+
+def simulate_data(case: CaseSpec, data_dir) -> Path:
+    """Simulate ``case`` into ``data_dir`` (written to a temporary sibling, then renamed)."""
+    from mi_grg.data.dataset import save_case
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    geo = default_geometry(n=case.n, det=case.det, views=case.views, mode=case.mode)
+    test = default_test_angles(case.test_views) if case.test_views else np.zeros(0)
+    noise = NoiseModel(**case.noise) if case.noise else None
+    if case.is_volume:
+        from mi_grg.data.volume_phantom import simulate_volume_case
+        c = simulate_volume_case(case.source, geo, test, noise, seed=case.seed,
+                                 oversample=case.oversample, ground_truth=case.ground_truth)
+    else:
+        c = simulate_case(case.source, geo, test, noise, seed=case.seed)
+    c.info["suite_case"] = dataclasses.asdict(case)
+    data_dir = Path(data_dir)
+    tmp = data_dir.with_name(data_dir.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    save_case(c, tmp)
+    if data_dir.exists():
+        shutil.rmtree(data_dir)
+    os.replace(tmp, data_dir)
+    return data_dir
+
+
+def _simulate_task(task: dict) -> dict:
+    t0 = time.perf_counter()
+    try:
+        _worker_setup(task["variant"], task["threads"], task["extra"])
+        simulate_data(CaseSpec(**task["case"]), task["data_dir"])
+        return {"status": "ok", "seconds": time.perf_counter() - t0}
+    except Exception as e:   # recorded; never kills the runner
+        err = Path(task["data_dir"]).with_name(Path(task["data_dir"]).name + ".error.txt")
+        err.parent.mkdir(parents=True, exist_ok=True)
+        err.write_text(traceback.format_exc())
+        return {"status": "failed", "error": f"{type(e).__name__}: {e}"}
+
+
+def _run_task(task: dict) -> dict:
+    """Worker body: one reconstruction under the contract; never raises."""
+    run_dir = Path(task["run_dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "error.txt").unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    try:
+        with _logged(run_dir / "log.txt"):
+            _worker_setup(task["variant"], task["threads"], task["extra"])
+            from mi_grg.data.dataset import load_case
+            from mi_grg.methods import get_method, reconstruct
+            case = load_case(task["data_dir"])
+            opts = dict(task["options"])
+            params = inspect.signature(get_method(task["method"])).parameters
+            if "progress" in params:
+                opts.setdefault("progress", False)
+            if "resume" in params and (run_dir / "checkpoint.npz").exists():
+                opts["resume"] = True   # continue an interrupted training run
+            _, metrics = reconstruct(case, task["method"], out_dir=run_dir, **opts)
+        return {"status": "ok", "seconds": metrics["seconds"],
+                "psnr_3d": metrics.get("psnr_3d"), "ssim_3d": metrics.get("ssim_3d")}
+    except BaseException as e:  # noqa: BLE001 (KeyboardInterrupt in a worker: record it too)
+        (run_dir / "error.txt").write_text(traceback.format_exc())
+        return {"status": "failed", "error": f"{type(e).__name__}: {e}",
+                "seconds": time.perf_counter() - t0}
+
+
+def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
+             on_result=None, client=None) -> list:
+    """Run ``func(task)`` for every task: in fresh spawned processes here, ``jobs`` at a
+    time, or, given a ``distributed.Client``, one Dask task each on its cluster
+    (``mi_grg.lab.cluster``). ``on_result(i, result)`` is called, in this process, as each
+    task finishes; a task that cannot finish is a failed result, never an exception."""
+    from tqdm import tqdm
+    results = [None] * len(tasks)
+    bar = tqdm(total=len(tasks), desc=desc, disable=not progress, dynamic_ncols=True)
+    failed = 0
+    if client is None:
+        finished = _run_local(func, tasks, jobs)
+    else:
+        from mi_grg.lab.cluster import run_on_cluster
+        counted = [{**t, "attempts_file": str(_attempts_file(t))} for t in tasks]
+        finished = run_on_cluster(client, func, counted, desc)
+    for i, res in finished:
+        results[i] = res
+        failed += res["status"] != "ok"
+        if on_result is not None:
+            on_result(i, res)
+        bar.update(1)
+        bar.set_postfix(failed=failed, refresh=False)
+    bar.close()
+    return results
+
+
+def _run_local(func, tasks: list, jobs: int):
+    """Yield (i, func(tasks[i])) as tasks finish in fresh spawned processes, ``jobs`` at a
+    time. A worker that dies (segfault, OOM kill) breaks the pool; its unfinished tasks are
+    then retried one per pool, so a crashing run only fails itself."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+    ctx = mp.get_context("spawn")
+    rounds = [(list(range(len(tasks))), jobs)]
+    while rounds:
+        idx, n = rounds.pop(0)
+        broken = []
+        with ProcessPoolExecutor(max_workers=max(1, min(n, len(idx))), mp_context=ctx,
+                                 max_tasks_per_child=1) as pool:
+            futs = {pool.submit(func, tasks[i]): i for i in idx}
+            for fut in as_completed(futs):
+                i = futs[fut]
+                try:
+                    yield i, fut.result()
+                except BrokenProcessPool:
+                    broken.append(i)
+                except Exception as e:  # pickling errors etc.
+                    yield i, {"status": "failed", "error": f"{type(e).__name__}: {e}"}
+        if len(idx) > 1:   # cannot tell which task crashed: retry each alone
+            rounds.extend(([i], 1) for i in broken)
+        else:
+            for i in broken:
+                yield i, {"status": "failed",
+                          "error": "worker process died (crash or out of memory)"}
+
+
+def _attempts_file(task: dict) -> Path:
+    """Where a cluster task counts its starts: in the run's directory, or beside the data
+    set it simulates."""
+    if "run_dir" in task:
+        return Path(task["run_dir"]) / "attempts.txt"
+    data = Path(task["data_dir"])
+    return data.with_name(data.name + ".attempts.txt")
+
+
+def stale_options(run_dir: Path) -> list:
+    """Training options of a finished r2/gr run whose values differ from what this code
+    resolves the run's options to (a default changed since it ran); [] if none differ or
+    the run is not a training run. Such a run is not reused: it is run again."""
+    try:
+        m = json.loads((Path(run_dir) / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return []
+    return stale_keys(m)
+
+
+
+def _is_done(run_dir: Path) -> bool:
+    return (run_dir / "metrics.json").is_file() and not stale_options(run_dir)
+
+
+def _index_done(out: Path) -> dict:
+    """key -> run_dir of every finished (non-symlinked) run under OUT."""
+    index = {}
+    for spec_file in out.glob("*/*/*/run_spec.json"):
+        d = spec_file.parent
+        if d.is_symlink() or not _is_done(d):
+            continue
+        try:
+            key = json.loads(spec_file.read_text())["key"]
+        except (OSError, ValueError, KeyError):
+            continue
+        index.setdefault(key, d)
+    return index
+
+
+def _link(link: Path, target: Path) -> None:
+    link.parent.mkdir(parents=True, exist_ok=True)
+    if link.is_symlink() or link.is_file():
+        link.unlink()
+    elif link.exists():
+        shutil.rmtree(link)   # an unfinished run replaced by an identical finished one
+    os.symlink(os.path.relpath(target, link.parent), link, target_is_directory=True)
+
+
+def expected_cost(spec: RunSpec, out: Path) -> float:
+    """A rough relative cost of a run, to start the longest runs first.
+
+    Trained methods (r2 / gr) cost minutes, the iterative baselines seconds, FDK less.
+    A trained run's Gaussians, and with them its time, grow with the occupied part of
+    the volume (the cube-filling micro-CT crops took 3-5x the phantoms' time), so its
+    cost is 1 + the fraction of ground-truth voxels above 5 % of the maximum (0.5 when
+    the data set has no ground truth). Runs without early stopping come first among
+    equals, since they run their whole schedule."""
+    if spec.method not in TRAINED:
+        return {"fdk": 0.0}.get(spec.method, 0.01)
+    nostop = spec.options.get("stop_drop") == NOSTOP_DROP
+    return 1.0 + _fill_fraction(spec.data_dir(out) / "vol_gt.npy") + 0.01 * nostop
+
+
+@functools.lru_cache(maxsize=None)
+def _fill_fraction(gt: Path) -> float:
+    """Fraction of ground-truth voxels above 5 % of the maximum (0.5 without one); read
+    once per data set, not once per run on it."""
+    if not gt.is_file():
+        return 0.5
+    v = np.load(gt)
+    top = float(np.max(v))
+    return float(np.mean(v > 0.05 * top)) if top > 0 else 0.0
+
+
+def default_jobs(variant: str, n_tasks: int) -> int:
+    """One job on a GPU variant (one device), else up to the core count."""
+    if variant.startswith("cuda"):
+        return 1
+    return max(1, min(os.cpu_count() or 1, n_tasks))
+
+
+def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, methods=None,
+                   dry_run: bool = False, cases=None, progress: bool = True,
+                   dask: str | None = None, threads_per_run: int | None = None) -> dict:
+    """Plan and run experiment ``name`` (or "all") of the suite into ``out_dir``.
+
+    Args:
+        name: one of ``EXPERIMENTS`` or "all" (those the suite lists; all if none).
+        suite_path: suite JSON file.
+        out_dir: results root (layout in the module docstring).
+        jobs: parallel worker processes (None: ``default_jobs``).
+        methods, cases: optional lists (or comma-separated strings) restricting the runs.
+        dry_run: only plan; nothing is simulated or run.
+        dask: address of a Dask scheduler (``tcp://host:8786``): the data sets and then the
+            runs are Dask tasks on its cluster (``mi_grg.lab.cluster``) instead of local
+            processes; OUT must be on a file system the workers share.
+        threads_per_run: Dr.Jit threads of each run (LLVM variant; default: cores // jobs
+            here, 1 on a cluster).
+    Returns:
+        {"planned", "done_before", "linked", "ran", "failed", "runs": [per-run dicts]}.
+    """
+    suite = load_suite(suite_path)
+    if isinstance(methods, str):
+        methods = [m for m in methods.split(",") if m]
+    if isinstance(cases, str):
+        cases = [c for c in cases.split(",") if c]
+    if name == "all":   # the experiments the suite lists (every one if it lists none)
+        names = [n for n in EXPERIMENTS if n in suite.experiments] or list(EXPERIMENTS)
+    else:
+        names = [name]
+    specs = [s for n in names for s in plan_experiment(n, suite, methods, cases)]
+    # the workers of a cluster may start elsewhere: they get absolute paths
+    out = Path(out_dir).absolute() if dask else Path(out_dir)
+    index = _index_done(out) if out.exists() else {}
+    rows, todo, first_of = [], [], {}
+    for s in specs:
+        d, key = s.run_dir(out), s.key()
+        row = {"experiment": s.experiment, "case": s.case.name, "run": s.run,
+               "category": s.case.category, "label": s.label, "views": s.case.views,
+               "method": s.method, "options": s.options, "dir": str(d)}
+        if (d / "metrics.json").is_file() and not _is_done(d):
+            row["stale"] = stale_options(d)   # defaults changed since it ran: run again
+        if _is_done(d):
+            row["status"] = "done before"
+        elif key in index:
+            row["status"], row["target"] = "linked", str(index[key])
+        elif key in first_of:
+            row["status"], row["target"] = "duplicate", str(first_of[key].run_dir(out))
+        else:
+            row["status"] = "todo"
+            first_of[key] = s
+            todo.append(s)
+        rows.append(row)
+    datas = {}
+    for s in todo:
+        if not (s.data_dir(out) / "meta_data.json").is_file():
+            datas[s.case.data_dir_name] = s.case
+    summary = {"experiment": name, "suite": suite.path, "planned": len(specs),
+               "to_simulate": sorted(datas), "runs": rows}
+    if dry_run:
+        summary.update({k: sum(r["status"] == k for r in rows)
+                        for k in ("done before", "linked", "duplicate", "todo")})
+        return summary
+
+    if threads_per_run is not None and threads_per_run < 1:
+        raise ValueError(f"threads_per_run must be >= 1, got {threads_per_run}")
+    client = None
+    if dask:
+        if jobs is not None:
+            raise ValueError("jobs sets the local worker processes; with dask the cluster's "
+                             "workers run the tasks (leave jobs out)")
+        from mi_grg.lab.cluster import connect
+        client = connect(dask)     # before anything is written: an unreachable one leaves none
+    # closed on the way out, failure or not (the cluster's queued tasks are cancelled)
+    with client if client is not None else contextlib.nullcontext():
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "suite.json").write_text(Path(suite.path).read_text())
+        if client is None:
+            n_jobs = jobs or default_jobs(suite.variant, max(len(todo), len(datas), 1))
+            where = {"jobs": n_jobs}
+        else:
+            n_jobs = None
+            where = {"dask": str(dask), "threads_per_run": threads_per_run or 1}
+        cores = os.cpu_count() or 1
+
+        def base_task(n_parallel):
+            threads = threads_per_run or (1 if client is not None
+                                          else max(1, cores // max(1, n_parallel)))
+            return {"variant": suite.variant, "extra": suite.extra_methods,
+                    "threads": threads if suite.variant.startswith("llvm") else None}
+
+        sim_failed = set()
+        if datas:
+            tasks = [{**base_task(min(n_jobs or 1, len(datas))),
+                      "case": dataclasses.asdict(c), "data_dir": str(out / "data" / dn)}
+                     for dn, c in datas.items()]
+            res = _execute(_simulate_task, tasks, n_jobs, "simulate", progress, client=client)
+            sim_failed = {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
+        for s in todo:   # write specs first: a run in progress is recognisable on disk
+            d = s.run_dir(out)
+            if d.is_symlink():            # linked to a run that is stale now: run it here
+                d.unlink()
+            for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
+                (d / old).unlink(missing_ok=True)
+            d.mkdir(parents=True, exist_ok=True)
+            (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
+                                                        indent=2, default=str))
+        runnable = [s for s in todo if s.case.data_dir_name not in sim_failed]
+        # Longest first, so that no long run starts last and leaves the other workers idle.
+        runnable.sort(key=lambda s: -expected_cost(s, out))
+        tasks = [{**base_task(min(n_jobs or 1, len(runnable))),
+                  "run_dir": str(s.run_dir(out)), "data_dir": str(s.data_dir(out)),
+                  "method": s.method, "options": s.options} for s in runnable]
+        row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
+
+        def finish(key, r):
+            s, row = row_of[key]
+            row.update({"status": "ran" if r["status"] == "ok" else "failed",
+                        **{k: v for k, v in r.items() if k != "status"}})
+            err = s.run_dir(out) / "error.txt"
+            if r["status"] != "ok" and not err.exists():   # the worker died before writing
+                err.write_text(str(r.get("error")) + "\n")
+
+        def write_index(final: bool) -> None:
+            # While runs go on, only finished rows are written: a killed runner leaves a
+            # runs.json of everything that completed (the report reads it as it is).
+            for n in names:
+                mine = [r for r in rows if r["experiment"] == n
+                        and (final or r["status"] in ("done before", "ran", "failed"))]
+                if mine or final:
+                    command = experiment_command(n, suite.path, out, methods, cases)
+                    _write_runs_json(out / n, n, suite, mine, command, where)
+
+        def on_result(i, r):
+            finish(runnable[i].key(), r)
+            write_index(final=False)
+
+        if tasks:
+            _execute(_run_task, tasks, n_jobs, name, progress, on_result=on_result,
+                     client=client)
+        for s in todo:
+            if s.case.data_dir_name in sim_failed:
+                msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
+                (s.run_dir(out) / "error.txt").write_text(msg + "\n")
+                finish(s.key(), {"status": "failed", "error": msg})
+        for s, row in zip(specs, rows):
+            if row["status"] in ("linked", "duplicate"):
+                target = Path(row["target"])
+                if _is_done(target):
+                    _link(s.run_dir(out), target)
+                    row["status"] = "linked"
+                else:
+                    row["status"] = "failed"
+                    row["error"] = f"identical run {target} failed"
+        write_index(final=True)
+        summary.update({k: sum(r["status"] == k for r in rows)
+                        for k in ("done before", "linked", "ran", "failed")})
+        return summary
+
+
+def _write_runs_json(exp_dir: Path, name: str, suite: Suite, rows: list, command: str,
+                     where: dict) -> None:
+    """Merge ``rows`` into EXP/runs.json (runs of earlier invocations with other
+    --methods / --cases filters are kept; the same (case, run) is replaced). ``where`` says
+    where they ran: {"jobs": N} here, {"dask": address, "threads_per_run": T} on a cluster."""
+    exp_dir.mkdir(parents=True, exist_ok=True)
+    path = exp_dir / "runs.json"
+    old = {}
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except ValueError:
+            old = {}
+    merged = {(r["case"], r["run"]): r for r in old.get("runs", [])}
+    merged.update({(r["case"], r["run"]): r for r in rows})
+    commands = [c for c in old.get("commands", []) if c != command] + [command]
+    path.write_text(json.dumps(
+        {"experiment": name, "suite": suite.path, "suite_name": suite.name,
+         "variant": suite.variant, "commands": commands, **where,
+         "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": list(merged.values())},
+        indent=2, default=str))
+
+
+def experiment_command(name, suite_path, out, methods=None, cases=None) -> str:
+    cmd = f"mi-grg experiment {name} --suite {suite_path} --out {out}"
+    if methods:
+        cmd += f" --methods {','.join(methods)}"
+    if cases:
+        cmd += f" --cases {','.join(cases)}"
+    return cmd
+

@@ -1,0 +1,174 @@
+"""Experiment suites: the JSON file of simulated cases (``load_suite``), its validation
+(``SuiteError`` names the field), and the names of the paper's experiments and methods.
+The suite format is described in experiments/README.md."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+EXPERIMENTS = ("table1", "table2", "table3", "iterations", "speed", "views", "seeds")
+#: Keys each experiment's block in a suite may set (anything else is an error).
+EXPERIMENT_KEYS = {"table1": ("methods", "cases"), "table2": ("cases",),
+                   "table3": ("k", "sigma_d", "cases"),
+                   "iterations": ("methods", "log_3d_every", "cases"),
+                   "speed": ("methods", "cases"), "views": ("views", "methods", "cases"),
+                   "seeds": ("seeds", "methods", "cases")}
+ALL_METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
+CATEGORIES = {"HO": "human organs / organ-like", "BS": "biological specimens",
+              "AO": "artificial objects"}
+CASE_FIELDS = ("name", "category", "source", "views", "test_views", "n", "det", "mode",
+               "noise", "seed")
+TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.config.TrainConfig
+CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve"}
+NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
+
+
+class SuiteError(ValueError):
+    """An invalid suite file; the message names the field."""
+
+
+@dataclass(frozen=True)
+class CaseSpec:
+    """One simulated scan (all sizes in voxels / pixels; noise as NoiseModel fields)."""
+    name: str
+    category: str
+    source: str                 # phantom name (mi_grg.data.phantoms) or a .npy volume
+    views: int
+    test_views: int
+    n: int
+    det: int
+    mode: str = "cone"
+    noise: dict | None = None
+    seed: int = 0
+    oversample: float = 4.0     # volume sources: samples per source voxel (volume_phantom)
+    ground_truth: str = "average"   # volume sources: "average" | "block"
+    data_name: str = ""         # directory under OUT/data ("" -> name)
+
+    @property
+    def data_dir_name(self) -> str:
+        return self.data_name or self.name
+
+    @property
+    def is_volume(self) -> bool:
+        return self.source.endswith(".npy")
+
+    def key(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("data_name")
+        d.pop("category")
+        if not self.is_volume:
+            d.pop("oversample")
+            d.pop("ground_truth")
+        return d
+
+
+@dataclass
+class Suite:
+    name: str
+    path: str
+    variant: str
+    cases: list
+    method_options: dict = field(default_factory=dict)
+    experiments: dict = field(default_factory=dict)
+    extra_methods: dict = field(default_factory=dict)
+    description: str = ""
+
+    def case(self, name: str) -> CaseSpec:
+        for c in self.cases:
+            if c.name == name:
+                return c
+        raise SuiteError(f"suite {self.path} has no case {name!r}; cases: "
+                         f"{[c.name for c in self.cases]}")
+
+
+def _int_field(c: dict, key: str, where: str, minimum: int) -> int:
+    v = c[key]
+    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+        raise SuiteError(f"{where}.{key} must be an integer >= {minimum}, got {v!r}")
+    return v
+
+
+def load_suite(path) -> Suite:
+    """Read and validate a suite JSON file (see experiments/README.md for the format)."""
+    from mi_grg.data.phantoms import PHANTOMS
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise SuiteError(f"cannot read suite {path}: {e}") from None
+    if not isinstance(raw, dict) or not isinstance(raw.get("cases"), list) or not raw["cases"]:
+        raise SuiteError(f"{path}: expected an object with a non-empty 'cases' list")
+    cases, seen = [], set()
+    known = {f.name for f in dataclasses.fields(CaseSpec)} - {"data_name"}
+    for i, c in enumerate(raw["cases"]):
+        where = f"{path}: cases[{i}]"
+        if not isinstance(c, dict):
+            raise SuiteError(f"{where} must be an object")
+        missing = [k for k in CASE_FIELDS if k not in c]
+        if missing:
+            raise SuiteError(f"{where} lacks {missing}")
+        unknown = sorted(set(c) - known)
+        if unknown:
+            raise SuiteError(f"{where} has unknown field(s) {unknown}; known: {sorted(known)}")
+        name = c["name"]
+        if not isinstance(name, str) or not name or any(ch in name for ch in "/\\ ") \
+                or name == "data":
+            raise SuiteError(f"{where}.name must be a non-empty name without / \\ or spaces "
+                             f"(and not 'data'), got {name!r}")
+        if name in seen:
+            raise SuiteError(f"{where}: duplicate case name {name!r}")
+        seen.add(name)
+        if c["category"] not in CATEGORIES:
+            raise SuiteError(f"{where}.category must be one of {list(CATEGORIES)}, got "
+                             f"{c['category']!r}")
+        src = c["source"]
+        if not isinstance(src, str) or not (src in PHANTOMS or src.endswith(".npy")):
+            raise SuiteError(f"{where}.source must be a phantom {PHANTOMS} or a .npy volume, "
+                             f"got {src!r}")
+        if c["mode"] not in ("cone", "parallel"):
+            raise SuiteError(f"{where}.mode must be 'cone' or 'parallel', got {c['mode']!r}")
+        noise = c["noise"]
+        if noise is not None:
+            if not isinstance(noise, dict):
+                raise SuiteError(f"{where}.noise must be null or {{I0, electronic_std}}")
+            from mi_grg.data.noise import NoiseModel
+            try:
+                NoiseModel(**noise)
+            except (TypeError, ValueError) as e:
+                raise SuiteError(f"{where}.noise: {e}") from None
+        spec = CaseSpec(name=name, category=c["category"], source=src,
+                        views=_int_field(c, "views", where, 2),
+                        test_views=_int_field(c, "test_views", where, 0),
+                        n=_int_field(c, "n", where, 2), det=_int_field(c, "det", where, 2),
+                        mode=c["mode"], noise=noise, seed=_int_field(c, "seed", where, 0),
+                        oversample=float(c.get("oversample", 4.0)),
+                        ground_truth=c.get("ground_truth", "average"))
+        cases.append(spec)
+    mo = raw.get("method_options", {}) or {}
+    if not isinstance(mo, dict) or not all(isinstance(v, dict) for v in mo.values()):
+        raise SuiteError(f"{path}: method_options must map method names to option objects")
+    ex = raw.get("experiments", {}) or {}
+    bad = sorted(set(ex) - set(EXPERIMENTS))
+    if bad:
+        raise SuiteError(f"{path}: unknown experiment(s) {bad}; known: {list(EXPERIMENTS)}")
+    for ename, cfg in ex.items():
+        if cfg is not None and not isinstance(cfg, dict):
+            raise SuiteError(f"{path}: experiments.{ename} must be an object")
+        unknown = sorted(set(cfg or {}) - set(EXPERIMENT_KEYS[ename]))
+        if unknown:
+            raise SuiteError(f"{path}: experiments.{ename} has unknown key(s) {unknown}; "
+                             f"known: {list(EXPERIMENT_KEYS[ename])}")
+        for cname in (cfg or {}).get("cases") or []:
+            if cname not in seen:
+                raise SuiteError(f"{path}: experiments.{ename}.cases names unknown case "
+                                 f"{cname!r}")
+    extra = raw.get("extra_methods", {}) or {}
+    if not all(isinstance(v, str) and ":" in v for v in extra.values()):
+        raise SuiteError(f"{path}: extra_methods must map names to 'module:function'")
+    return Suite(name=str(raw.get("name", path.stem)), path=str(path),
+                 variant=str(raw.get("variant", "llvm_ad_mono")), cases=cases,
+                 method_options=mo, experiments=ex, extra_methods=extra,
+                 description=str(raw.get("description", "")))
+
