@@ -39,7 +39,7 @@ Dr.Jit's normal AD. The backward pass accumulates each column's gradient in regi
 as fixed (its jump is rho exp(-extent^2/2)).
 
 Inputs are checked as the projector checks them (finite, scales > 0, densities >= 0,
-rotations unit quaternions to ``projector.QUATERNION_TOL``, zero ones rejected), and the
+rotations unit quaternions to ``gaussians.QUATERNION_TOL``, zero ones rejected), and the
 rotations are normalised internally, so the rotation gradient is tangent to the unit sphere.
 """
 from __future__ import annotations
