@@ -315,7 +315,10 @@ class _RecordFrame:
         # ReduceMode.Local: the adjoint scatter-add then carries no array-size literal
         # (Auto would pick Expand, whose kernels are recompiled whenever N changes)
         loc = dr.ReduceMode.Local
-        gather = lambda a: dr.gather(F, a, gi, mode=loc)  # noqa: E731
+        if gi is None:   # every Gaussian once, in order: no gathers (nor adjoint scatters)
+            gather = lambda a: a  # noqa: E731
+        else:
+            gather = lambda a: dr.gather(F, a, gi, mode=loc)  # noqa: E731
         gather_view = lambda a: dr.gather(F, a, vi)  # noqa: E731
         p = [gather(a) for a in gauss["p"]]
         s = [gather(a) for a in gauss["s"]]
@@ -327,8 +330,8 @@ class _RecordFrame:
         X = [p[0] * E[axis][0] + p[1] * E[axis][1] + p[2] * E[axis][2] - O[axis] for axis in range(3)]
         if means2d is not None:
             # zero-valued detector-plane shift, in pixels at the Gaussian's depth
-            md = dr.gather(mi.Vector2f, means2d, vi * dr.opaque(mi.UInt32, n_gauss) + gi,
-                           mode=loc)
+            md = means2d if gi is None else dr.gather(
+                mi.Vector2f, means2d, vi * dr.opaque(mi.UInt32, n_gauss) + gi, mode=loc)
             depth = dr.detach(X[0]) / det.h if det.cone else 1.0
             X[1] = X[1] + md.x * det.du * depth
             X[2] = X[2] + md.y * det.dv * depth
@@ -541,12 +544,13 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
         if cone:
             z1 = dr.fma(D11, du, c2)
             den = dr.fma(z1, z1, z2p1)
-            rs = dr.rsqrt(den)
-            m2 = num * rs * rs
             su_len = dr.fma(u, det.du, det.a_u)
-            L = dr.sqrt(dr.fma(su_len, su_len, h2sv2))
-            base0 = L * rs * dr.exp(-0.5 * dr.minimum(m2, det.E2))
-            return u, du, y1, num, z1, den, rs, m2, base0
+            # L / sqrt(den) = sqrt(L^2 / den): one reciprocal and one square root per pixel
+            inv_den = dr.rcp(den)
+            m2 = num * inv_den
+            L_rs = dr.sqrt(dr.fma(su_len, su_len, h2sv2) * inv_den)
+            base0 = L_rs * dr.exp(-0.5 * dr.minimum(m2, det.E2))
+            return u, du, y1, num, z1, den, inv_den, m2, base0
         m2 = num
         base0 = dr.exp(-0.5 * dr.minimum(m2, det.E2))
         return u, du, y1, num, None, None, None, m2, base0
@@ -561,7 +565,7 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
 
     if mode == dr.ADMode.Forward:
         def body(j):
-            u, du, y1, num, z1, den, rs, m2, base0 = pixel(j)
+            u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
             val = amp * base0
             # d num and d den from the parameter tangents
             dnum = 2 * y1 * (tt["N11"] * du + tt["N21"] * dv - N11 * tt["uc"] - N21 * tt["vc"]) \
@@ -572,7 +576,6 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
                 dden = 2 * z1 * (tt["D11"] * pu + tt["D21"] * pv - D11 * (tt["uc"] + tt["su"])
                                  - D21 * (tt["vc"] + tt["sv"])) \
                     + 2 * z2 * (tt["D22"] * pv - D22 * (tt["vc"] + tt["sv"]))
-                inv_den = rs * rs
                 dval = dval + val * 0.5 * inv_den * ((m2 - 1) * dden - dnum)
             else:
                 dval = dval - 0.5 * val * dnum
@@ -585,14 +588,14 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
     zero = F(0)
 
     def body(j, Sa, Sy1du, Sy1, SN, Sz1pu, Sz1, SD):
-        u, du, y1, num, z1, den, rs, m2, base0 = pixel(j)
+        u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
         act = m2 <= det.E2
         g = dr.gather(F, gimage, mi.UInt32(pix0 + j), active=act)
         gb = g * base0
         gI = gb * amp
         Sa = Sa + gb
         if cone:
-            tq = 0.5 * gI * rs * rs
+            tq = 0.5 * gI * inv_den
             gN = -tq
             gD = tq * (m2 - 1)
             pu = du - t["su"]
@@ -749,6 +752,27 @@ def _expand_rows(n_rows_np: np.ndarray, row_lo, max_items: int):
         start = end
 
 
+def segment_lanes(counts, skip: int, total: int):
+    """Expand segments into lanes: for lane j in [0, total) its segment ``slot`` and its
+    ``offset`` inside the segment (both mi.UInt32 [total]).
+
+    Segment i holds ``counts[i]`` (mi.UInt32) items; the first ``skip`` items of segment 0
+    are left out. An exclusive ``dr.prefix_sum`` gives each segment's first item; a marker
+    per segment start and an inclusive prefix sum over the items give each item its
+    segment (empty segments share their start with the next one and never win). Used for
+    the projector's (record, row) lanes and the voxelizer's (Gaussian, column) lanes."""
+    UInt32 = mi.UInt32
+    first = dr.prefix_sum(counts)
+    skip_u = dr.opaque(UInt32, skip)
+    pos = first - skip_u                 # wraps for segment 0: masked by k > 0
+    k = dr.arange(UInt32, dr.width(counts))
+    marker = dr.zeros(UInt32, total)
+    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & (pos < total))
+    slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)
+    offset = dr.arange(UInt32, total) + skip_u - dr.gather(UInt32, first, slot)
+    return slot, offset
+
+
 def _plan_chunks(n: int, n_views: int, npix: int):
     """(v0, v1, g0, g1) blocks of at most RECORDS_PER_CHUNK records and PIXELS_PER_CHUNK
     image floats (view-major)."""
@@ -770,9 +794,16 @@ class _Prepared:
         U = mi.UInt32
         self.v0, self.v1 = v0, v1
         nvc, ngc = v1 - v0, g1 - g0
-        gi = g0 + dr.tile(dr.arange(U, ngc), nvc)
+        # One view and every Gaussian (a training iteration): the records are the Gaussians
+        # themselves, indexed directly (gi = None) and not compacted to the regular ones
+        # (non-regular records get no rows).
+        identity = (nvc == 1 and ngc == n_gauss
+                    and (means2d is None or dr.width(means2d) == n_gauss))
+        gi = None if identity else g0 + dr.tile(dr.arange(U, ngc), nvc)
         vi = v0 + dr.repeat(dr.arange(U, nvc), ngc)
-        dr.eval(gi, vi)   # keeps the sizes (literals) out of the big kernels below
+        dr.eval(vi)   # keeps the sizes (literals) out of the big kernels below
+        if gi is not None:
+            dr.eval(gi)
         with dr.suspend_grad():
             frame = _RecordFrame(gauss, views, det, gi, vi, means2d, n_gauss)
             params = _regular_params(frame, det)
@@ -784,24 +815,37 @@ class _Prepared:
                 near = ~regular & (reach > 0)
             else:
                 regular = footprint["ok"]
+                near = None
             regular = regular & (footprint["n_rows"] > 0)
             footprint.pop("ok")
-            dr.eval(regular, params, footprint)
-            self.reg_ids = dr.compress(regular)
-            # parameters and footprints of the regular records, for the kernels
-            self.params = {k: dr.gather(mi.Float, v, self.reg_ids) for k, v in params.items()}
-            self.footprint = {k: dr.gather(type(v), v, self.reg_ids) for k, v in footprint.items()}
+            if identity:
+                footprint["n_rows"] = dr.select(regular, footprint["n_rows"], 0)
+                self.params, self.footprint = params, footprint
+                dr.eval(params, footprint, near)   # one kernel
+                self.reg_ids = None
+            else:
+                dr.eval(regular, params, footprint, near)
+                self.reg_ids = dr.compress(regular)
+                # parameters and footprints of the regular records, for the kernels
+                self.params = {k: dr.gather(mi.Float, v, self.reg_ids) for k, v in params.items()}
+                self.footprint = {k: dr.gather(type(v), v, self.reg_ids)
+                                  for k, v in footprint.items()}
             if det.cone:
-                dr.eval(near)
                 self.near_ids = dr.compress(near)
             else:
                 self.near_ids = U()
-        self.reg_gi = dr.gather(U, gi, self.reg_ids)
-        self.reg_vi = dr.gather(U, vi, self.reg_ids)
-        self.near_gi = dr.gather(U, gi, self.near_ids)
-        self.near_vi = dr.gather(U, vi, self.near_ids)
-        dr.eval(self.reg_gi, self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint)
-        self.n_reg = dr.width(self.reg_ids)
+        if identity:
+            self.reg_gi, self.reg_vi = None, vi
+            self.near_gi, self.near_vi = self.near_ids, dr.gather(U, vi, self.near_ids)
+        else:
+            self.reg_gi = dr.gather(U, gi, self.reg_ids)
+            self.reg_vi = dr.gather(U, vi, self.reg_ids)
+            self.near_gi = dr.gather(U, gi, self.near_ids)
+            self.near_vi = dr.gather(U, vi, self.near_ids)
+        dr.eval(self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint)
+        if self.reg_gi is not None:
+            dr.eval(self.reg_gi)
+        self.n_reg = ngc if identity else dr.width(self.reg_ids)
         self.n_near = dr.width(self.near_ids)
         self._batches = None
 
@@ -810,13 +854,22 @@ class _Prepared:
         when they form a single batch (then the derivative pass reuses them)."""
         if self._batches is not None:
             return self._batches
-        n_rows = self.footprint["n_rows"].numpy() if self.n_reg else np.zeros(0, np.uint32)
-        _tick("rows", {"rows_regular": int(n_rows.sum())})
-        gen = _expand_rows(n_rows, self.footprint["row_lo"], ROWS_PER_BATCH)
-        if int(n_rows.sum()) <= ROWS_PER_BATCH:
-            self._batches = list(gen)
+        if not self.n_reg:
+            self._batches = []
             return self._batches
-        return gen
+        n_rows = self.footprint["n_rows"]
+        total = int(dr.sum(n_rows, axis=None)[0])
+        _tick("rows", {"rows_regular": total})
+        if total <= ROWS_PER_BATCH:
+            # one batch (the training case), expanded on the device: no host round trip
+            self._batches = []
+            if total:
+                rec, offset = segment_lanes(n_rows, 0, total)
+                row = mi.Int32(offset) + dr.gather(mi.Int32, self.footprint["row_lo"], rec)
+                dr.eval(rec, row)
+                self._batches.append((rec, row))
+            return self._batches
+        return _expand_rows(n_rows.numpy(), self.footprint["row_lo"], ROWS_PER_BATCH)
 
 
 # ====================================================================== the operation

@@ -56,7 +56,8 @@ from mi_grg.core.gaussians import Gaussians, inverse_covariance, rotation_matrix
 from mi_grg.core.geometry import Geometry
 # one truncation rule, one set of input checks and one quaternion normalisation for the
 # projector and the voxelizer
-from mi_grg.core.projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
+from mi_grg.core.projector import (DEFAULT_EXTENT, first_failure, gaussian_checks,
+                                   segment_lanes, unit_quaternions)
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -202,31 +203,12 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
                  chunks=chunks, x0=x0, d=d, ext2=extent * extent, box_pairs=box_pairs)
 
 
-def _segments(counts, skip: int, total: int):
-    """Expand segments: for j in [0, total) its segment ``slot`` and offset in it.
-
-    Segment i holds ``counts[i]`` items, the first ``skip`` items of segment 0 are left
-    out. An exclusive ``dr.prefix_sum`` gives each segment's first item; a marker per
-    segment start and an inclusive prefix sum over the items give each item its segment
-    (empty segments share their start with the next one and never win)."""
-    UInt32 = mi.UInt32
-    first = dr.prefix_sum(counts)
-    skip_u = dr.opaque(UInt32, skip)
-    pos = first - skip_u                 # wraps for segment 0: masked by k > 0
-    k = dr.arange(UInt32, dr.width(counts))
-    marker = dr.zeros(UInt32, total)
-    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & (pos < total))
-    slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)
-    offset = dr.arange(UInt32, total) + skip_u - dr.gather(UInt32, first, slot)
-    return slot, offset
-
-
 def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho) -> dict:
     """The (Gaussian, x, y) columns of one chunk, one lane each, with the column's exact
     z-range inside the ellipsoid m <= extent (the roots of the quadratic m^2(z) =
     extent^2, clipped to the block). Left unevaluated: it fuses into the loop kernel."""
     UInt32, Int32, Float = mi.UInt32, mi.Int32, mi.Float
-    slot, local = _segments(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
+    slot, local = segment_lanes(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
     g = dr.gather(UInt32, ids, slot)
     # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0), as
     # integer division by zero traps on x86
