@@ -143,6 +143,11 @@ class _Plan:
     d: tuple              # voxel size [x, y, z] (length)
     ext2: float           # extent^2
     box_pairs: int        # sum of the box volumes (an upper bound of the pairs)
+    max_columns: int      # largest column count of one box
+
+
+#: Boxes with fewer columns than this split their column index in float32 (exact there).
+_FLOAT_DIV_MAX = 1 << 22
 
 
 def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pairs) -> _Plan:
@@ -200,7 +205,8 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
             chunks.append((UInt32(ids[g0:b].astype(np.uint32)), int(c0 - c_start[g0]), c1 - c0))
             c0 = c1
     return _Plan(start=start, size=size, lo=lo, n=nn, ncol=UInt32(ncol_np.astype(np.uint32)),
-                 chunks=chunks, x0=x0, d=d, ext2=extent * extent, box_pairs=box_pairs)
+                 chunks=chunks, x0=x0, d=d, ext2=extent * extent, box_pairs=box_pairs,
+                 max_columns=int(ncol_np.max()) if ncol_np.size else 0)
 
 
 def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho) -> dict:
@@ -210,10 +216,15 @@ def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho) -> dict:
     UInt32, Int32, Float = mi.UInt32, mi.Int32, mi.Float
     slot, local = segment_lanes(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
     g = dr.gather(UInt32, ids, slot)
-    # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0), as
-    # integer division by zero traps on x86
+    # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0)
     ny = dr.maximum(dr.gather(UInt32, plan.n[1], g), 1)
-    ix = local // ny
+    if plan.max_columns < _FLOAT_DIV_MAX:
+        # local // ny in float32: SIMD integer division does not exist on x86 (LLVM emits
+        # one scalar division per lane). Exact: local < nx ny < 2^22 and (local + 1/2) / ny
+        # stays >= 1 / (2 ny) away from an integer, far above float32 rounding.
+        ix = UInt32(dr.floor((Float(local) + 0.5) / Float(ny)))
+    else:
+        ix = local // ny
     iy = local - ix * ny
     ax = dr.gather(Int32, plan.lo[0], g) + Int32(ix)
     ay = dr.gather(Int32, plan.lo[1], g) + Int32(iy)

@@ -1,12 +1,16 @@
-"""The projector's training fast path equals its general path (mi_grg.core.projector).
+"""Fast paths equal the general ones they shortcut (projector and voxelizer).
 
-A training iteration projects ONE view of ALL Gaussians: then the records are the Gaussians
+Projector (mi_grg.core.projector): a training iteration projects ONE view of ALL Gaussians: then the records are the Gaussians
 themselves (no compaction to the regular records, no index gathers) and the (record, row)
 lanes are expanded on the device. A multi-view call takes the general path (records
 gathered per view, compacted; here also host-expanded row batches when ROWS_PER_BATCH is
 small). Both must give the same image and the same gradients of every input, including
 near-source records (exact half-line form), records outside the detector, the graph
 field's density_scale and the detector-plane offsets means2d.
+
+Voxelizer (mi_grg.core.voxelizer): the column index of a lane is split into (x, y) with a
+float32 division where that is exact (boxes of < 2^22 columns), else with integer
+division; both must give the same block and gradients.
 """
 import math
 
@@ -81,3 +85,34 @@ def test_single_view_path_equals_general_path(variant, rng, monkeypatch, small_b
             assert np.abs(b).max() > 0, name
             np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(b).max(),
                                        err_msg=f"{name}, view {v}")
+
+
+def test_voxelizer_float_column_split_equals_integer_split(variant, rng, monkeypatch):
+    import drjit as dr
+    import mitsuba as mi
+    from mi_grg.core import voxelizer as V
+    from mi_grg.core.gaussians import Gaussians
+    geo, g, scale = _case(rng, n=60)
+    block = ([2, 3, 1], [11, 9, 13])
+    w = mi.Float(rng.normal(size=11 * 9 * 13).astype(np.float32))
+
+    def run():
+        leaves = [type(a)(a) for a in (g.positions, g.scales, g.rotations, g.densities)]
+        ds = mi.Float(scale)
+        for a in leaves + [ds]:
+            dr.enable_grad(a)
+        vol = V.voxelize_dr(Gaussians(*leaves), geo, block=block, density_scale=ds)
+        dr.backward(dr.sum(vol.array * w))
+        grads = [np.asarray(dr.grad(a), np.float64).ravel() if dr.depth_v(a) == 1 else
+                 np.stack([np.asarray(c, np.float64) for c in dr.grad(a)], -1)
+                 for a in leaves + [ds]]
+        return np.asarray(vol.numpy(), np.float64), grads
+
+    vol_f, grads_f = run()
+    monkeypatch.setattr(V, "_FLOAT_DIV_MAX", 0)      # integer division everywhere
+    vol_i, grads_i = run()
+    assert vol_i.max() > 0
+    np.testing.assert_allclose(vol_f, vol_i, rtol=1e-6, atol=1e-7 * vol_i.max())
+    for a, b in zip(grads_f, grads_i):
+        assert np.abs(b).max() > 0
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max())
