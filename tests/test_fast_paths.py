@@ -8,9 +8,10 @@ small). Both must give the same image and the same gradients of every input, inc
 near-source records (exact half-line form), records outside the detector, the graph
 field's density_scale and the detector-plane offsets means2d.
 
-Voxelizer (mi_grg.core.voxelizer): the column index of a lane is split into (x, y) with a
-float32 division where that is exact (boxes of < 2^22 columns), else with integer
-division; both must give the same block and gradients.
+Voxelizer (mi_grg.core.voxelizer): the forward's column index of a lane is split into
+(x, y) with a float32 division where that is exact (boxes of < 2^22 columns), else with
+integer division; the backward runs on (Gaussian, x) slice lanes. Both splits, and small
+chunks cut inside boxes, must give the same block and gradients.
 """
 import math
 
@@ -96,12 +97,13 @@ def test_voxelizer_float_column_split_equals_integer_split(variant, rng, monkeyp
     block = ([2, 3, 1], [11, 9, 13])
     w = mi.Float(rng.normal(size=11 * 9 * 13).astype(np.float32))
 
-    def run():
+    def run(chunk_pairs=V.DEFAULT_CHUNK_PAIRS):
         leaves = [type(a)(a) for a in (g.positions, g.scales, g.rotations, g.densities)]
         ds = mi.Float(scale)
         for a in leaves + [ds]:
             dr.enable_grad(a)
-        vol = V.voxelize_dr(Gaussians(*leaves), geo, block=block, density_scale=ds)
+        vol = V.voxelize_dr(Gaussians(*leaves), geo, block=block, density_scale=ds,
+                            chunk_pairs=chunk_pairs)
         dr.backward(dr.sum(vol.array * w))
         grads = [np.asarray(dr.grad(a), np.float64).ravel() if dr.depth_v(a) == 1 else
                  np.stack([np.asarray(c, np.float64) for c in dr.grad(a)], -1)
@@ -109,10 +111,12 @@ def test_voxelizer_float_column_split_equals_integer_split(variant, rng, monkeyp
         return np.asarray(vol.numpy(), np.float64), grads
 
     vol_f, grads_f = run()
+    vol_c, grads_c = run(chunk_pairs=97)             # many chunks, cut inside boxes
     monkeypatch.setattr(V, "_FLOAT_DIV_MAX", 0)      # integer division everywhere
     vol_i, grads_i = run()
     assert vol_i.max() > 0
-    np.testing.assert_allclose(vol_f, vol_i, rtol=1e-6, atol=1e-7 * vol_i.max())
-    for a, b in zip(grads_f, grads_i):
-        assert np.abs(b).max() > 0
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max())
+    for vol, grads in ((vol_f, grads_f), (vol_c, grads_c)):
+        np.testing.assert_allclose(vol, vol_i, rtol=1e-6, atol=1e-7 * vol_i.max())
+        for a, b in zip(grads, grads_i):
+            assert np.abs(b).max() > 0
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max())

@@ -131,10 +131,11 @@ def test_chunking_gives_the_same_volume(geo, rng):
     for chunk in (1, 97, 5000):
         np.testing.assert_allclose(voxelize(g, geo, chunk_pairs=chunk), ref,
                                    rtol=1e-6, atol=1e-6 * ref.max())
-    # the chunks really were cut (one plan with several chunks, also inside a box)
+    # the chunks really were cut (one plan with several chunks, also inside a box), for the
+    # forward's column lanes and the backward's slice lanes
     plan = voxelizer._plan(g.positions, g.scales, g.rotations, geo, (0, 0, 0), geo.nVoxel,
                            DEFAULT_EXTENT, 97)
-    assert len(plan.chunks) > 8
+    assert len(plan.col_chunks) > 8 and len(plan.slice_chunks) > 8
 
 
 def test_density_scale_scales_densities(geo, rng):
