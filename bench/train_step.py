@@ -1,6 +1,6 @@
 """Where one gr / r2 training iteration spends its time, on a late-training state.
 
-    .venv/bin/python bench/train_step.py                      # 64^3 gr and r2, vs main
+    .venv/bin/python bench/train_step.py                      # 64^3 gr and r2, vs REFERENCE
     .venv/bin/python bench/train_step.py --sizes 64 128 --before 42a14d5
     .venv/bin/python bench/train_step.py --quick              # smoke run
 
@@ -10,9 +10,9 @@ iterations (400 at 64^3: past the scaled densification window, ~80-120k Gaussian
 once to ``out/bench_cache/`` (not in git) with the raw parameters and the training views.
 Every measurement starts from that state, so "before" and "after" time the same model.
 
-Code compared: the working tree ("after") and ``--before REV`` ("before", default: the
-merge base with main), whose ``mi_grg`` package is exported with ``git archive`` into the
-cache and put first on PYTHONPATH. Each (code, method, size) runs in its own process;
+Code compared: the working tree ("after") and ``--before REV`` ("before", default
+``REFERENCE``, the code before issue 21's throughput work), whose ``mi_grg`` package is
+exported with ``git archive`` into the cache and put first on PYTHONPATH. Each (code, method, size) runs in its own process;
 ``--rounds`` alternates before/after processes (ABAB...) so that both see the same
 machine load, and the table quotes the median over rounds of each process's median.
 
@@ -56,6 +56,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 CACHE = ROOT / "out" / "bench_cache"
 TRAIN_ITERS = {64: 400, 128: 600}
+REFERENCE = "42a14d5"   # main before issue 21's throughput work: the "before" column
 PARTS = ("setup", "proj_fwd", "loss_fwd", "tv_fwd", "lap_fwd", "loss_bwd", "proj_bwd",
          "tv_bwd", "lap_bwd", "stats_sync", "adam")
 PART_TEXT = {"setup": "Gaussians.from_raw, means2d", "proj_fwd": "projection forward",
@@ -207,13 +208,15 @@ class _Step:
             dr.set_grad(img.array, dr.grad(img_in.array))
             dr.enqueue(dr.ADMode.Backward, img.array)
             dr.traverse(dr.ADMode.Backward)
-            tick("proj_bwd", dr.grad(raw["positions"]))
+            # every raw gradient evaluated: each part books its whole chain of derivatives
+            grads = lambda: [dr.grad(v) for v in raw.values()]  # noqa: E731
+            tick("proj_bwd", *grads(), dr.grad(means2d))
             if start is not None:
                 dr.backward(tv)
-                tick("tv_bwd", dr.grad(raw["positions"]))
+                tick("tv_bwd", *grads())
             if lap is not None:
                 dr.backward(lap)
-                tick("lap_bwd", dr.grad(raw["raw_densities"]))
+                tick("lap_bwd", *grads())
             total = loss + sum(terms[1:]) if len(terms) > 1 else loss
         else:
             total = terms[0]
@@ -386,8 +389,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[64])
     ap.add_argument("--methods", nargs="+", default=["gr", "r2"])
-    ap.add_argument("--before", default=None, help="git revision of the 'before' code "
-                    "(default: merge-base with main); 'none' skips it")
+    ap.add_argument("--before", default=REFERENCE, help="git revision of the 'before' code "
+                    f"(default {REFERENCE}: the code before issue 21's speed work); 'none' "
+                    "skips it")
     ap.add_argument("--iters", type=int, default=10, help="timed iteration pairs per process")
     ap.add_argument("--rounds", type=int, default=2, help="before/after alternations")
     ap.add_argument("--quick", action="store_true")
@@ -407,7 +411,7 @@ def main() -> int:
         return 0
     if args.quick:
         args.iters, args.rounds = 3, 1
-    before = args.before or _git("merge-base", "HEAD", "main")
+    before = args.before
     codes = [("after", None)]
     if before.lower() != "none":
         codes.insert(0, ("before", _export(before)))
