@@ -12,9 +12,10 @@ Every measurement starts from that state, so "before" and "after" time the same 
 
 Code compared: the working tree ("after") and ``--before REV`` ("before", default
 ``REFERENCE``, the code before issue 21's throughput work), whose ``mi_grg`` package is
-exported with ``git archive`` into the cache and put first on PYTHONPATH. Each (code, method, size) runs in its own process;
-``--rounds`` alternates before/after processes (ABAB...) so that both see the same
-machine load, and the table quotes the median over rounds of each process's median.
+exported with ``git archive`` into the cache and put first on PYTHONPATH. Each (code,
+method, size) runs in its own process; ``--rounds`` alternates before/after processes
+(ABAB...) so that both see the same machine load, and the table quotes the median over
+rounds of each process's median.
 
 One iteration mirrors ``Trainer.run``'s step (training.trainer): Gaussians.from_raw ->
 project_dr of one random view (with means2d) -> L1 + D-SSIM -> TV on a random 32^3 block

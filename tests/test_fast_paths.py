@@ -1,12 +1,13 @@
 """Fast paths equal the general ones they shortcut (projector and voxelizer).
 
-Projector (mi_grg.core.projector): a training iteration projects ONE view of ALL Gaussians: then the records are the Gaussians
-themselves (no compaction to the regular records, no index gathers) and the (record, row)
-lanes are expanded on the device. A multi-view call takes the general path (records
-gathered per view, compacted; here also host-expanded row batches when ROWS_PER_BATCH is
-small). Both must give the same image and the same gradients of every input, including
-near-source records (exact half-line form), records outside the detector, the graph
-field's density_scale and the detector-plane offsets means2d.
+Projector (mi_grg.core.projector): a training iteration projects ONE view of ALL
+Gaussians: then the records are the Gaussians themselves (no compaction to the regular
+records, no index gathers) and the (record, row) lanes are expanded on the device. A
+multi-view call takes the general path (records gathered per view, compacted; here also
+host-expanded row batches when ROWS_PER_BATCH is small). Both must give the same image
+and the same gradients of every input, including near-source records (exact half-line
+form), records outside the detector, the graph field's density_scale and the
+detector-plane offsets means2d.
 
 Voxelizer (mi_grg.core.voxelizer): the forward's column index of a lane is split into
 (x, y) with a float32 division where that is exact (boxes of < 2^22 columns), else with

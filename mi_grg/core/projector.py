@@ -310,7 +310,8 @@ class _RecordFrame:
     """Quantities of a set of records (Gaussian index gi, view index vi) in the view frame,
     lengths divided by sigma = max scale (detached) so that every record is O(1)."""
 
-    def __init__(self, gauss, views: _ViewFrameArrays, det: _DetectorConstants, gi, vi, means2d=None, n_gauss=0):
+    def __init__(self, gauss, views: _ViewFrameArrays, det: _DetectorConstants, gi, vi,
+                 means2d=None, n_gauss=0):
         F = mi.Float
         # ReduceMode.Local: the adjoint scatter-add then carries no array-size literal
         # (Auto would pick Expand, whose kernels are recompiled whenever N changes)
@@ -427,7 +428,8 @@ def _near_params(frame: _RecordFrame):
         inv = 1.0 / frame.sn[l]
         for k in range(3):
             out[f"M{l}{k}"] = frame.Rf[k][l] * inv
-        g.append((frame.Rf[0][l] * frame.Xn[0] + frame.Rf[1][l] * frame.Xn[1] + frame.Rf[2][l] * frame.Xn[2]) * inv)
+        g.append((frame.Rf[0][l] * frame.Xn[0] + frame.Rf[1][l] * frame.Xn[1]
+                  + frame.Rf[2][l] * frame.Xn[2]) * inv)
     out.update(g0=g[0], g1=g[1], g2=g[2], amp=frame.rho * (_SQRT_2PI * frame.sig))
     return out
 
@@ -499,7 +501,8 @@ def _row_interval(det, uc, dv, footprint, rec):
     F, I32 = mi.Float, mi.Int32
     gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
     y = dv - gather(footprint["cv"])
-    hw = dr.sqrt(dr.maximum(gather(footprint["hw2"]) * (gather(footprint["S_vv"]) - y * y), 0)) * (1 + _BOUND_PAD) + _BOUND_PAD
+    hw = (dr.sqrt(dr.maximum(gather(footprint["hw2"]) * (gather(footprint["S_vv"]) - y * y), 0))
+          * (1 + _BOUND_PAD) + _BOUND_PAD)
     ucr = uc + gather(footprint["cu"]) + gather(footprint["slope"]) * y
     lo = I32(dr.maximum(dr.ceil(dr.clip(ucr - hw - 0.5, -1.0, det.nuf)), 0.0))
     hi = I32(dr.minimum(dr.floor(dr.clip(ucr + hw - 0.5, -1.0, det.nuf)), det.nuf - 1))
@@ -1110,7 +1113,8 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
         density_scale = mi.Float(density_scale)
     _validate(gaussians, n, density_scale, means2d, nviews)
     fr = view_frames(geometry)
-    setup = _ProjectionSetup(geometry, _ViewFrameArrays(fr), _DetectorConstants(fr, geometry, extent), n, nviews)
+    setup = _ProjectionSetup(geometry, _ViewFrameArrays(fr),
+                             _DetectorConstants(fr, geometry, extent), n, nviews)
     g = gaussians
     flat = dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
                      density_scale, means2d, setup)
