@@ -26,6 +26,7 @@ bench: $(STAMP)
 	$(PY) bench/baselines.py
 	$(PY) bench/voxelizer.py
 	$(PY) bench/graph.py
+	$(PY) bench/train_step.py
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -196,8 +196,8 @@ def worker_ad_compare(cfg):
     from mi_grg.core.gaussians import Gaussians
     g, geo, _ = _workload(cfg["n"], cfg["nd"])
     fr = P.view_frames(geo)
-    C = P._Consts(fr, geo, P.DEFAULT_EXTENT)
-    VD = P._ViewData(fr)
+    det = P._DetectorConstants(fr, geo, P.DEFAULT_EXTENT)
+    views = P._ViewFrameArrays(fr)
     nv, nu = geo.nDetector
     y = mi.Float(np.random.default_rng(1).normal(size=nv * nu).astype(np.float32))
 
@@ -205,20 +205,20 @@ def worker_ad_compare(cfg):
         leaves = [type(a)(a) for a in (g.positions, g.scales, g.rotations, g.densities)]
         for a in leaves:
             dr.enable_grad(a)
-        G = P._gaussian_arrays(Gaussians(*leaves), None)
+        gauss = P._gaussian_arrays(Gaussians(*leaves), None)
         with dr.suspend_grad():
-            prep = P._Prepared(G, VD, C, 0, 1, 0, len(g), None, len(g))
-        b = P._Base(G, VD, C, prep.reg_gi, prep.reg_vi)
-        th = P._regular_theta(b, C)
+            prep = P._Prepared(gauss, views, det, 0, 1, 0, len(g), None, len(g))
+        frame = P._RecordFrame(gauss, views, det, prep.reg_gi, prep.reg_vi)
+        params = P._regular_params(frame, det)
         with dr.suspend_grad():
-            fp = P._footprint({k: dr.detach(v) for k, v in th.items()}, C)
-            rows = fp["n_rows"].numpy()
+            footprint = P._footprint({k: dr.detach(v) for k, v in params.items()}, det)
+            rows = footprint["n_rows"].numpy()
         image = dr.zeros(mi.Float, nv * nu)
-        for rec, row in P._expand_rows(rows, fp["row_lo"], P.ROWS_PER_BATCH):
+        for rec, row in P._expand_rows(rows, footprint["row_lo"], P.ROWS_PER_BATCH):
             with dr.suspend_grad():
-                uc = dr.gather(mi.Float, dr.detach(th["uc"]), rec)
-                vc = dr.gather(mi.Float, dr.detach(th["vc"]), rec)
-                lo, hi = P._row_interval(C, uc, mi.Float(row) + 0.5 - vc, fp, rec)
+                uc = dr.gather(mi.Float, dr.detach(params["uc"]), rec)
+                vc = dr.gather(mi.Float, dr.detach(params["vc"]), rec)
+                lo, hi = P._row_interval(det, uc, mi.Float(row) + 0.5 - vc, footprint, rec)
                 cnt = mi.UInt32(dr.maximum(hi - lo + 1, 0))
                 off = dr.prefix_sum(cnt)
                 total = int(dr.sum(mi.Float(cnt), axis=None)[0])
@@ -231,7 +231,7 @@ def worker_ad_compare(cfg):
                 r = dr.gather(mi.UInt32, rec, lane)
                 v = mi.Float(dr.gather(mi.Int32, row, lane)) + 0.5
                 u = mi.Float(j) + 0.5
-            t = {k: dr.gather(mi.Float, th[k], r) for k in th}
+            t = {k: dr.gather(mi.Float, params[k], r) for k in params}
             du, dv = u - t["uc"], v - t["vc"]
             y1 = t["N11"] * du + t["N21"] * dv
             y2 = t["N22"] * dv
@@ -240,11 +240,11 @@ def worker_ad_compare(cfg):
             z2 = t["D22"] * pv
             den = 1 + z1 * z1 + z2 * z2
             m2 = (y1 * y1 + y2 * y2) / den
-            su_len = C.a_u + u * C.du
-            sv_len = C.a_v + v * C.dv
-            L = dr.sqrt(C.h2 + su_len * su_len + sv_len * sv_len)
-            val = t["amp"] * L * dr.rsqrt(den) * dr.exp(-0.5 * dr.minimum(m2, C.E2))
-            dr.scatter_add(image, val, mi.UInt32(mi.Int32(v - 0.5) * nu + j), active=m2 <= C.E2)
+            su_len = det.a_u + u * det.du
+            sv_len = det.a_v + v * det.dv
+            L = dr.sqrt(det.h2 + su_len * su_len + sv_len * sv_len)
+            val = t["amp"] * L * dr.rsqrt(den) * dr.exp(-0.5 * dr.minimum(m2, det.E2))
+            dr.scatter_add(image, val, mi.UInt32(mi.Int32(v - 0.5) * nu + j), active=m2 <= det.E2)
         dr.backward(dr.sum(image * y))
         dr.eval([dr.grad(a) for a in leaves])
 

@@ -131,10 +131,11 @@ def test_chunking_gives_the_same_volume(geo, rng):
     for chunk in (1, 97, 5000):
         np.testing.assert_allclose(voxelize(g, geo, chunk_pairs=chunk), ref,
                                    rtol=1e-6, atol=1e-6 * ref.max())
-    # the chunks really were cut (one plan with several chunks, also inside a box)
+    # the chunks really were cut (one plan with several chunks, also inside a box), for the
+    # forward's column lanes and the backward's slice lanes
     plan = voxelizer._plan(g.positions, g.scales, g.rotations, geo, (0, 0, 0), geo.nVoxel,
                            DEFAULT_EXTENT, 97)
-    assert len(plan.chunks) > 8
+    assert len(plan.col_chunks) > 8 and len(plan.slice_chunks) > 8
 
 
 def test_density_scale_scales_densities(geo, rng):
@@ -173,7 +174,8 @@ def test_rejects_bad_input(geo, rng):
     with pytest.raises(VoxelizerError, match="extent"):
         voxelize(g, geo, extent=-1.0)
     # the projector's checks: zero / non-unit quaternions, negative densities and scales
-    from mi_grg.core.projector import QUATERNION_TOL, ProjectorError, project
+    from mi_grg.core.gaussians import QUATERNION_TOL
+    from mi_grg.core.projector import ProjectorError, project
     q = np.asarray(g.numpy()["rotations"], np.float64)
     tol = QUATERNION_TOL
 
@@ -211,7 +213,7 @@ def test_rejects_bad_input(geo, rng):
 def test_rotations_are_normalised_internally(geo, rng):
     """Quaternions within QUATERNION_TOL of unit length give the volume of their normalised
     selves, and the rotation gradient has no radial component (tangent to the sphere)."""
-    from mi_grg.core.projector import QUATERNION_TOL
+    from mi_grg.core.gaussians import QUATERNION_TOL
     params = make_params(rng, 6, geo, smin=0.12, smax=0.3)
     unit = voxelize(to_gaussians(params), geo)
     stretch = 1 + 0.8 * QUATERNION_TOL * np.array([1, -1, 1, -1, 1, -1.0])[:, None]

@@ -62,7 +62,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.core.gaussians import Gaussians, rotation_matrix
+from mi_grg.core.gaussians import QUATERNION_TOL, Gaussians, rotation_matrix
 from mi_grg.core.geometry import Geometry
 
 __all__ = ["DEFAULT_EXTENT", "ProjectorError", "ViewFrames", "project", "project_dr",
@@ -70,7 +70,6 @@ __all__ = ["DEFAULT_EXTENT", "ProjectorError", "ViewFrames", "project", "project
 
 DEFAULT_EXTENT = 4.5
 HALF_LINE_MARGIN = 8.0        # Mahalanobis units between source and closest point (regular)
-QUATERNION_TOL = 1e-3         # accepted | |q| - 1 | of rotations given as Dr.Jit arrays
 RECORDS_PER_CHUNK = 1 << 20   # (Gaussian, view) records evaluated at once
 ROWS_PER_BATCH = 1 << 22      # (record, row) lanes launched at once
 PIXELS_PER_CHUNK = 1 << 24    # image floats per chunk (ReduceMode.Expand copies it per thread)
@@ -253,7 +252,7 @@ def _validate(g: Gaussians, n: int, density_scale, means2d, n_views: int):
 
 
 # ====================================================================== records
-class _Consts:
+class _DetectorConstants:
     """Geometry scalars as opaque Dr.Jit values (one compiled kernel for all geometries)."""
 
     def __init__(self, fr: ViewFrames, geometry: Geometry, extent: float):
@@ -275,13 +274,13 @@ class _Consts:
         self.npix_py = nu * nv
 
 
-class _ViewData:
+class _ViewFrameArrays:
     """Per-view frame vectors as Dr.Jit arrays (float32), indexed by global view id."""
 
     def __init__(self, fr: ViewFrames):
-        self.e = [[_to_dr(mi.Float, b[:, k]) for k in range(3)] for b in (fr.e_n, fr.e_u, fr.e_v)]
+        self.e = [[_to_dr(mi.Float, axis[:, k]) for k in range(3)] for axis in (fr.e_n, fr.e_u, fr.e_v)]
         # origin coordinates in the view frame, in float64 before rounding
-        self.o = [_to_dr(mi.Float, np.sum(fr.origin * b, 1)) for b in (fr.e_n, fr.e_u, fr.e_v)]
+        self.o = [_to_dr(mi.Float, np.sum(fr.origin * axis, 1)) for axis in (fr.e_n, fr.e_u, fr.e_v)]
 
 
 def _to_dr(T, a):
@@ -307,35 +306,39 @@ def _gaussian_arrays(g: Gaussians, density_scale):
             "R": [[R[i][j] for j in range(3)] for i in range(3)], "rho": rho}
 
 
-class _Base:
+class _RecordFrame:
     """Quantities of a set of records (Gaussian index gi, view index vi) in the view frame,
     lengths divided by sigma = max scale (detached) so that every record is O(1)."""
 
-    def __init__(self, G, VD: _ViewData, C: _Consts, gi, vi, means2d=None, n_gauss=0):
+    def __init__(self, gauss, views: _ViewFrameArrays, det: _DetectorConstants, gi, vi,
+                 means2d=None, n_gauss=0):
         F = mi.Float
         # ReduceMode.Local: the adjoint scatter-add then carries no array-size literal
         # (Auto would pick Expand, whose kernels are recompiled whenever N changes)
         loc = dr.ReduceMode.Local
-        gat = lambda a: dr.gather(F, a, gi, mode=loc)  # noqa: E731
-        vat = lambda a: dr.gather(F, a, vi)  # noqa: E731
-        p = [gat(a) for a in G["p"]]
-        s = [gat(a) for a in G["s"]]
-        R = [[gat(G["R"][i][j]) for j in range(3)] for i in range(3)]
-        self.rho = gat(G["rho"])
-        E = [[vat(VD.e[b][k]) for k in range(3)] for b in range(3)]
-        O = [vat(VD.o[b]) for b in range(3)]
+        if gi is None:   # every Gaussian once, in order: no gathers (nor adjoint scatters)
+            gather = lambda a: a  # noqa: E731
+        else:
+            gather = lambda a: dr.gather(F, a, gi, mode=loc)  # noqa: E731
+        gather_view = lambda a: dr.gather(F, a, vi)  # noqa: E731
+        p = [gather(a) for a in gauss["p"]]
+        s = [gather(a) for a in gauss["s"]]
+        R = [[gather(gauss["R"][i][j]) for j in range(3)] for i in range(3)]
+        self.rho = gather(gauss["rho"])
+        E = [[gather_view(views.e[axis][k]) for k in range(3)] for axis in range(3)]
+        O = [gather_view(views.o[axis]) for axis in range(3)]
         # X = p - origin in frame coordinates (n, u, v)
-        X = [p[0] * E[b][0] + p[1] * E[b][1] + p[2] * E[b][2] - O[b] for b in range(3)]
+        X = [p[0] * E[axis][0] + p[1] * E[axis][1] + p[2] * E[axis][2] - O[axis] for axis in range(3)]
         if means2d is not None:
             # zero-valued detector-plane shift, in pixels at the Gaussian's depth
-            md = dr.gather(mi.Vector2f, means2d, vi * dr.opaque(mi.UInt32, n_gauss) + gi,
-                           mode=loc)
-            depth = dr.detach(X[0]) / C.h if C.cone else 1.0
-            X[1] = X[1] + md.x * C.du * depth
-            X[2] = X[2] + md.y * C.dv * depth
-        # Gaussian axes in the frame: Rf[b][l] = e_b . R[:, l]
-        Rf = [[E[b][0] * R[0][l] + E[b][1] * R[1][l] + E[b][2] * R[2][l] for l in range(3)]
-              for b in range(3)]
+            md = means2d if gi is None else dr.gather(
+                mi.Vector2f, means2d, vi * dr.opaque(mi.UInt32, n_gauss) + gi, mode=loc)
+            depth = dr.detach(X[0]) / det.h if det.cone else 1.0
+            X[1] = X[1] + md.x * det.du * depth
+            X[2] = X[2] + md.y * det.dv * depth
+        # Gaussian axes in the frame: Rf[axis][l] = e_axis . R[:, l]
+        Rf = [[E[axis][0] * R[0][l] + E[axis][1] * R[1][l] + E[axis][2] * R[2][l] for l in range(3)]
+              for axis in range(3)]
         sig = dr.detach(dr.maximum(dr.maximum(s[0], s[1]), s[2]))
         isig = 1.0 / sig
         self.sig, self.isig = sig, isig
@@ -345,21 +348,21 @@ class _Base:
         self.Rf = Rf
 
 
-def _sigma_entry(b, i, j):
+def _sigma_entry(frame, i, j):
     """Sigma'_{ij} (normalised) = sum_l s_l^2 Rf_il Rf_jl."""
-    return sum(dr.square(b.sn[l]) * b.Rf[i][l] * b.Rf[j][l] for l in range(3))
+    return sum(dr.square(frame.sn[l]) * frame.Rf[i][l] * frame.Rf[j][l] for l in range(3))
 
 
-def _ghat2(b):
+def _ghat2(frame):
     """|g|^2 = X^T Sigma^-1 X (Mahalanobis distance source-centre, squared)."""
     acc = 0
     for l in range(3):
-        gl = b.Rf[0][l] * b.Xn[0] + b.Rf[1][l] * b.Xn[1] + b.Rf[2][l] * b.Xn[2]
-        acc = acc + dr.square(gl / b.sn[l])
+        gl = frame.Rf[0][l] * frame.Xn[0] + frame.Rf[1][l] * frame.Xn[1] + frame.Rf[2][l] * frame.Xn[2]
+        acc = acc + dr.square(gl / frame.sn[l])
     return acc
 
 
-def _regular_theta(b: _Base, C: _Consts):
+def _regular_params(frame: _RecordFrame, det: _DetectorConstants):
     """The 11 per-record parameters of the regular closed form (differentiable).
 
     Pixel (u, v) (continuous), du = u - uc, dv = v - vc:
@@ -367,24 +370,24 @@ def _regular_theta(b: _Base, C: _Consts):
         pu = du - su, pv = dv - sv, z1 = D11 pu + D21 pv, z2 = D22 pv, den = 1 + z1^2 + z2^2
         m^2 = num / den,  value = amp * L(u, v) / sqrt(den) * exp(-m^2 / 2)
     with L the source-pixel distance (cone; parallel: den = L = 1)."""
-    sn, Rf, Xn = b.sn, b.Rf, b.Xn
-    S_nn, S_nu, S_nv = _sigma_entry(b, 0, 0), _sigma_entry(b, 0, 1), _sigma_entry(b, 0, 2)
+    sn, Rf, Xn = frame.sn, frame.Rf, frame.Xn
+    S_nn, S_nu, S_nv = _sigma_entry(frame, 0, 0), _sigma_entry(frame, 0, 1), _sigma_entry(frame, 0, 2)
     det_s = dr.square(sn[0] * sn[1] * sn[2])
-    dun, dvn = C.du * b.isig, C.dv * b.isig     # pixel steps / sigma
-    if C.cone:
+    dun, dvn = det.du * frame.isig, det.dv * frame.isig     # pixel steps / sigma
+    if det.cone:
         xn, xu, xv = Xn
-        lam = C.h / b.X[0]
-        uc = (lam * b.X[1] - C.a_u) / C.du
-        vc = (lam * b.X[2] - C.a_v) / C.dv
+        lam = det.h / frame.X[0]
+        uc = (lam * frame.X[1] - det.a_u) / det.du
+        vc = (lam * frame.X[2] - det.a_v) / det.dv
         # numerator: (Dq x X)^T Sigma (Dq x X) = Delta^T Wn Delta, t_l = s_l R_l^T w
         tu = [sn[l] * (Rf[0][l] * xv - Rf[2][l] * xn) for l in range(3)]
         tv = [sn[l] * (Rf[1][l] * xn - Rf[0][l] * xu) for l in range(3)]
         w_uu = dr.square(dun) * sum(t * t for t in tu)
         w_uv = dun * dvn * sum(tu[l] * tv[l] for l in range(3))
         n11r = dr.sqrt(w_uu)
-        ghat = dr.sqrt(_ghat2(b))
+        ghat = dr.sqrt(_ghat2(frame))
         sdet = sn[0] * sn[1] * sn[2]
-        beta = (C.h * b.isig) * dr.rsqrt(S_nn)        # beta^2 = min over pixels of r^T A r
+        beta = (det.h * frame.isig) * dr.rsqrt(S_nn)        # beta^2 = min over pixels of r^T A r
         N11 = n11r / (sdet * beta)
         N21 = w_uv / (n11r * sdet * beta)
         N22 = dun * dvn * xn * ghat / (n11r * beta)   # sqrt(det Wn) = du dv sdet xn |g|
@@ -395,51 +398,52 @@ def _regular_theta(b: _Base, C: _Consts):
         D11 = dun * A_uu * ra / beta
         D21 = dvn * A_uv * ra / beta
         D22 = dvn * dr.sqrt(S_nn / det_s) * ra / beta   # det(A_uv block) = Sigma_nn / det Sigma
-        su = -lam * (b.X[1] - b.X[0] * S_nu / S_nn) / C.du
-        sv = -lam * (b.X[2] - b.X[0] * S_nv / S_nn) / C.dv
-        amp = b.rho * (_SQRT_2PI * b.sig) * dr.sqrt(S_nn) / C.h
+        su = -lam * (frame.X[1] - frame.X[0] * S_nu / S_nn) / det.du
+        sv = -lam * (frame.X[2] - frame.X[0] * S_nv / S_nn) / det.dv
+        amp = frame.rho * (_SQRT_2PI * frame.sig) * dr.sqrt(S_nn) / det.h
         return dict(uc=uc, vc=vc, N11=N11, N21=N21, N22=N22, D11=D11, D21=D21, D22=D22,
                     su=su, sv=sv, amp=amp)
     # parallel: m^2 = Delta_phys^T Sigma_uv^-1 Delta_phys, value = rho sqrt(2 pi / A_nn) e^(-m^2/2)
-    S_uu, S_uv, S_vv = _sigma_entry(b, 1, 1), _sigma_entry(b, 1, 2), _sigma_entry(b, 2, 2)
+    S_uu, S_uv, S_vv = _sigma_entry(frame, 1, 1), _sigma_entry(frame, 1, 2), _sigma_entry(frame, 2, 2)
     A_nn = sum(dr.square(Rf[0][l] / sn[l]) for l in range(3))
     det_uv = det_s * A_nn                            # det of Sigma's (u, v) block
     r_vv = dr.rsqrt(S_vv)
     rd = dr.rsqrt(det_uv)
-    return dict(uc=b.X[1] / C.du, vc=b.X[2] / C.dv,
+    return dict(uc=frame.X[1] / det.du, vc=frame.X[2] / det.dv,
                 N11=dun * dr.sqrt(S_vv) * rd, N21=-dvn * S_uv * r_vv * rd, N22=dvn * r_vv,
-                amp=b.rho * (_SQRT_2PI * b.sig) * dr.rsqrt(A_nn))
+                amp=frame.rho * (_SQRT_2PI * frame.sig) * dr.rsqrt(A_nn))
 
 
-_THETA_REG_CONE = ("uc", "vc", "N11", "N21", "N22", "D11", "D21", "D22", "su", "sv", "amp")
-_THETA_REG_PAR = ("uc", "vc", "N11", "N21", "N22", "amp")
-_THETA_NEAR = ("M00", "M01", "M02", "M10", "M11", "M12", "M20", "M21", "M22", "g0", "g1", "g2", "amp")
+_REGULAR_PARAMS_CONE = ("uc", "vc", "N11", "N21", "N22", "D11", "D21", "D22", "su", "sv", "amp")
+_REGULAR_PARAMS_PARALLEL = ("uc", "vc", "N11", "N21", "N22", "amp")
+_NEAR_PARAMS = ("M00", "M01", "M02", "M10", "M11", "M12", "M20", "M21", "M22", "g0", "g1", "g2", "amp")
 
 
-def _near_theta(b: _Base):
+def _near_params(frame: _RecordFrame):
     """Near-source records: whitening rows M_l = Rf[:, l] / s_l (frame coords), g = M X,
     amp = rho sqrt(2 pi) sigma. Value = amp L / |M r| exp(-m^2/2) Phi(s) (see kernel)."""
     out = {}
     g = []
     for l in range(3):
-        inv = 1.0 / b.sn[l]
+        inv = 1.0 / frame.sn[l]
         for k in range(3):
-            out[f"M{l}{k}"] = b.Rf[k][l] * inv
-        g.append((b.Rf[0][l] * b.Xn[0] + b.Rf[1][l] * b.Xn[1] + b.Rf[2][l] * b.Xn[2]) * inv)
-    out.update(g0=g[0], g1=g[1], g2=g[2], amp=b.rho * (_SQRT_2PI * b.sig))
+            out[f"M{l}{k}"] = frame.Rf[k][l] * inv
+        g.append((frame.Rf[0][l] * frame.Xn[0] + frame.Rf[1][l] * frame.Xn[1]
+                  + frame.Rf[2][l] * frame.Xn[2]) * inv)
+    out.update(g0=g[0], g1=g[1], g2=g[2], amp=frame.rho * (_SQRT_2PI * frame.sig))
     return out
 
 
-def _footprint(th, C: _Consts):
+def _footprint(params, det: _DetectorConstants):
     """Exact footprint ellipse of regular records (detached): {m^2 <= E^2} in pixel offsets
     from (uc, vc) is (Delta - c)^T S^-1 (Delta - c) <= 1. Returns row range and per-row
     interval coefficients, plus a mask of well-conditioned ellipses."""
-    N11, N21, N22 = th["N11"], th["N21"], th["N22"]
-    Eb2 = C.Eb2
+    N11, N21, N22 = params["N11"], params["N21"], params["N22"]
+    Eb2 = det.Eb2
     p11, p22 = 1.0 / N11, 1.0 / N22
     p12 = -N21 * p11 * p22                      # P = Nc^-1 (upper triangular)
-    if C.cone:
-        D11, D21, D22 = th["D11"], th["D21"], th["D22"]
+    if det.cone:
+        D11, D21, D22 = params["D11"], params["D21"], params["D22"]
         # B = Dc P (upper triangular), J = I - E^2 B^T B
         b11, b12, b22 = D11 * p11, D11 * p12 + D21 * p22, D22 * p22
         J11 = 1 - Eb2 * b11 * b11
@@ -451,8 +455,8 @@ def _footprint(th, C: _Consts):
         ok = lam_min >= _J_MIN
         idet = 1.0 / detJ
         Ji11, Ji12, Ji22 = J22 * idet, -J12 * idet, J11 * idet
-        w1 = D11 * th["su"] + D21 * th["sv"]          # w = Dc Delta*
-        w2 = D22 * th["sv"]
+        w1 = D11 * params["su"] + D21 * params["sv"]          # w = Dc Delta*
+        w2 = D22 * params["sv"]
         bw1, bw2 = b11 * w1, b12 * w1 + b22 * w2      # B^T w
         jb1 = Ji11 * bw1 + Ji12 * bw2
         jb2 = Ji12 * bw1 + Ji22 * bw2                 # J^-1 B^T w
@@ -475,13 +479,13 @@ def _footprint(th, C: _Consts):
     # row range and u range (bounding box) in continuous pixel coordinates
     rv = dr.sqrt(dr.maximum(S_vv, 0)) * (1 + _BOUND_PAD) + _BOUND_PAD
     ru = dr.sqrt(dr.maximum(S_uu, 0)) * (1 + _BOUND_PAD) + _BOUND_PAD
-    vcen = th["vc"] + cv
-    ucen = th["uc"] + cu
-    row_lo = dr.ceil(dr.clip(vcen - rv - 0.5, -1.0, C.nvf))
-    row_hi = dr.floor(dr.clip(vcen + rv - 0.5, -1.0, C.nvf))
+    vcen = params["vc"] + cv
+    ucen = params["uc"] + cu
+    row_lo = dr.ceil(dr.clip(vcen - rv - 0.5, -1.0, det.nvf))
+    row_hi = dr.floor(dr.clip(vcen + rv - 0.5, -1.0, det.nvf))
     row_lo = dr.maximum(row_lo, 0.0)
-    row_hi = dr.minimum(row_hi, C.nvf - 1)
-    u_in = (ucen + ru > 0) & (ucen - ru < C.nuf)
+    row_hi = dr.minimum(row_hi, det.nvf - 1)
+    u_in = (ucen + ru > 0) & (ucen - ru < det.nuf)
     n_rows = dr.select(ok & u_in & (row_hi >= row_lo), row_hi - row_lo + 1, 0.0)
     return dict(ok=ok, row_lo=mi.Int32(row_lo), n_rows=mi.UInt32(n_rows), cu=cu, cv=cv,
                 slope=S_uv / S_vv, hw2=det_S / dr.square(S_vv), S_vv=S_vv)
@@ -492,33 +496,34 @@ def _scatter_mode():
     return dr.ReduceMode.Expand if dr.backend_v(mi.Float) == dr.JitBackend.LLVM else dr.ReduceMode.Auto
 
 
-def _row_interval(C, uc, dv, fp, rec):
+def _row_interval(det, uc, dv, footprint, rec):
     """Pixel columns [lo, hi] (Int32, clamped) of a footprint row; dv = row centre - vc."""
     F, I32 = mi.Float, mi.Int32
-    gat = lambda a: dr.gather(F, a, rec)  # noqa: E731
-    y = dv - gat(fp["cv"])
-    hw = dr.sqrt(dr.maximum(gat(fp["hw2"]) * (gat(fp["S_vv"]) - y * y), 0)) * (1 + _BOUND_PAD) + _BOUND_PAD
-    ucr = uc + gat(fp["cu"]) + gat(fp["slope"]) * y
-    lo = I32(dr.maximum(dr.ceil(dr.clip(ucr - hw - 0.5, -1.0, C.nuf)), 0.0))
-    hi = I32(dr.minimum(dr.floor(dr.clip(ucr + hw - 0.5, -1.0, C.nuf)), C.nuf - 1))
+    gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
+    y = dv - gather(footprint["cv"])
+    hw = (dr.sqrt(dr.maximum(gather(footprint["hw2"]) * (gather(footprint["S_vv"]) - y * y), 0))
+          * (1 + _BOUND_PAD) + _BOUND_PAD)
+    ucr = uc + gather(footprint["cu"]) + gather(footprint["slope"]) * y
+    lo = I32(dr.maximum(dr.ceil(dr.clip(ucr - hw - 0.5, -1.0, det.nuf)), 0.0))
+    hi = I32(dr.minimum(dr.floor(dr.clip(ucr + hw - 0.5, -1.0, det.nuf)), det.nuf - 1))
     return lo, hi
 
 
-def _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage=None, tan=None):
+def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage=None, tan=None):
     """One lane per (record, detector row); loops over the row's footprint pixels.
 
-    mode 'primal': scatter-add values into ``image``; 'backward': return the gradient
-    of <image, gimage> w.r.t. the 11 (6 parallel) record parameters per lane; 'forward':
-    scatter-add the tangent given the parameter tangents ``tan``."""
+    mode ``dr.ADMode.Primal``: scatter-add values into ``image``; ``Backward``: return the
+    gradient of <image, gimage> w.r.t. the 11 (6 parallel) record parameters per lane;
+    ``Forward``: scatter-add the tangent given the parameter tangents ``tan``."""
     F, I32 = mi.Float, mi.Int32
-    cone = C.cone
-    gat = lambda a: dr.gather(F, a, rec)  # noqa: E731
-    t = {k: gat(th[k]) for k in (_THETA_REG_CONE if cone else _THETA_REG_PAR)}
+    cone = det.cone
+    gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
+    t = {k: gather(params[k]) for k in (_REGULAR_PARAMS_CONE if cone else _REGULAR_PARAMS_PARALLEL)}
     uc, vc, N11, N21, N22, amp = t["uc"], t["vc"], t["N11"], t["N21"], t["N22"], t["amp"]
     v = F(row) + 0.5
     dv = v - vc
-    lo, hi = _row_interval(C, uc, dv, fp, rec)
-    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * C.nu
+    lo, hi = _row_interval(det, uc, dv, footprint, rec)
+    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * det.nu
     c1 = N21 * dv
     y2 = N22 * dv
     y2sq = y2 * y2
@@ -528,10 +533,10 @@ def _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage=None, tan=No
         c2 = D21 * pv - D11 * t["su"]
         z2 = D22 * pv
         z2p1 = 1 + z2 * z2
-        sv_len = C.a_v + v * C.dv
-        h2sv2 = C.h2 + sv_len * sv_len
-    if mode == "forward":
-        tt = {k: gat(tan[k]) for k in t}
+        sv_len = det.a_v + v * det.dv
+        h2sv2 = det.h2 + sv_len * sv_len
+    if mode == dr.ADMode.Forward:
+        tt = {k: gather(tan[k]) for k in t}
     smode = _scatter_mode()
 
     def pixel(j):
@@ -542,27 +547,28 @@ def _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage=None, tan=No
         if cone:
             z1 = dr.fma(D11, du, c2)
             den = dr.fma(z1, z1, z2p1)
-            rs = dr.rsqrt(den)
-            m2 = num * rs * rs
-            su_len = dr.fma(u, C.du, C.a_u)
-            L = dr.sqrt(dr.fma(su_len, su_len, h2sv2))
-            base0 = L * rs * dr.exp(-0.5 * dr.minimum(m2, C.E2))
-            return u, du, y1, num, z1, den, rs, m2, base0
+            su_len = dr.fma(u, det.du, det.a_u)
+            # L / sqrt(den) = sqrt(L^2 / den): one reciprocal and one square root per pixel
+            inv_den = dr.rcp(den)
+            m2 = num * inv_den
+            L_rs = dr.sqrt(dr.fma(su_len, su_len, h2sv2) * inv_den)
+            base0 = L_rs * dr.exp(-0.5 * dr.minimum(m2, det.E2))
+            return u, du, y1, num, z1, den, inv_den, m2, base0
         m2 = num
-        base0 = dr.exp(-0.5 * dr.minimum(m2, C.E2))
+        base0 = dr.exp(-0.5 * dr.minimum(m2, det.E2))
         return u, du, y1, num, None, None, None, m2, base0
 
-    if mode == "primal":
+    if mode == dr.ADMode.Primal:
         def body(j):
             _, _, _, _, _, _, _, m2, base0 = pixel(j)
-            dr.scatter_add(image, amp * base0, mi.UInt32(pix0 + j), active=m2 <= C.E2, mode=smode)
+            dr.scatter_add(image, amp * base0, mi.UInt32(pix0 + j), active=m2 <= det.E2, mode=smode)
             return (j + 1,)
         dr.while_loop((lo,), lambda j: j <= hi, body, labels=("j",), label="rg_primal")
         return None
 
-    if mode == "forward":
+    if mode == dr.ADMode.Forward:
         def body(j):
-            u, du, y1, num, z1, den, rs, m2, base0 = pixel(j)
+            u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
             val = amp * base0
             # d num and d den from the parameter tangents
             dnum = 2 * y1 * (tt["N11"] * du + tt["N21"] * dv - N11 * tt["uc"] - N21 * tt["vc"]) \
@@ -573,11 +579,10 @@ def _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage=None, tan=No
                 dden = 2 * z1 * (tt["D11"] * pu + tt["D21"] * pv - D11 * (tt["uc"] + tt["su"])
                                  - D21 * (tt["vc"] + tt["sv"])) \
                     + 2 * z2 * (tt["D22"] * pv - D22 * (tt["vc"] + tt["sv"]))
-                inv_den = rs * rs
                 dval = dval + val * 0.5 * inv_den * ((m2 - 1) * dden - dnum)
             else:
                 dval = dval - 0.5 * val * dnum
-            dr.scatter_add(image, dval, mi.UInt32(pix0 + j), active=m2 <= C.E2, mode=smode)
+            dr.scatter_add(image, dval, mi.UInt32(pix0 + j), active=m2 <= det.E2, mode=smode)
             return (j + 1,)
         dr.while_loop((lo,), lambda j: j <= hi, body, labels=("j",), label="rg_forward")
         return None
@@ -586,14 +591,14 @@ def _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage=None, tan=No
     zero = F(0)
 
     def body(j, Sa, Sy1du, Sy1, SN, Sz1pu, Sz1, SD):
-        u, du, y1, num, z1, den, rs, m2, base0 = pixel(j)
-        act = m2 <= C.E2
+        u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
+        act = m2 <= det.E2
         g = dr.gather(F, gimage, mi.UInt32(pix0 + j), active=act)
         gb = g * base0
         gI = gb * amp
         Sa = Sa + gb
         if cone:
-            tq = 0.5 * gI * rs * rs
+            tq = 0.5 * gI * inv_den
             gN = -tq
             gD = tq * (m2 - 1)
             pu = du - t["su"]
@@ -627,26 +632,26 @@ def _phi(x):
     return 0.5 * (1.0 + dr.erf(x * (1.0 / math.sqrt(2.0))))
 
 
-def _near_kernel(mode, C, th, vbase, rec, row, image, gimage=None, tan=None):
+def _near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None):
     """One lane per (near record, detector row) over the whole row; exact half-line form."""
     F, I32 = mi.Float, mi.Int32
-    gat = lambda a: dr.gather(F, a, rec)  # noqa: E731
-    t = {k: gat(th[k]) for k in _THETA_NEAR}
+    gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
+    t = {k: gather(params[k]) for k in _NEAR_PARAMS}
     M = [[t[f"M{l}{k}"] for k in range(3)] for l in range(3)]
     gv = [t["g0"], t["g1"], t["g2"]]
     amp = t["amp"]
     v = F(row) + 0.5
-    sv_len = C.a_v + v * C.dv
-    h2sv2 = C.h2 + sv_len * sv_len
-    kl = [M[l][0] * C.h + M[l][2] * sv_len for l in range(3)]   # row-constant part of M r
-    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * C.nu
+    sv_len = det.a_v + v * det.dv
+    h2sv2 = det.h2 + sv_len * sv_len
+    kl = [M[l][0] * det.h + M[l][2] * sv_len for l in range(3)]   # row-constant part of M r
+    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * det.nu
     smode = _scatter_mode()
-    if mode == "forward":
-        tt = {k: gat(tan[k]) for k in _THETA_NEAR}
+    if mode == dr.ADMode.Forward:
+        tt = {k: gather(tan[k]) for k in _NEAR_PARAMS}
 
     def pixel(j):
         u = F(j) + 0.5
-        su_len = dr.fma(u, C.du, C.a_u)
+        su_len = dr.fma(u, det.du, det.a_u)
         L = dr.sqrt(dr.fma(su_len, su_len, h2sv2))
         D = [dr.fma(M[l][1], su_len, kl[l]) for l in range(3)]
         q = dr.maximum(D[0] * D[0] + D[1] * D[1] + D[2] * D[2], 1e-30)
@@ -656,7 +661,7 @@ def _near_kernel(mode, C, th, vbase, rec, row, image, gimage=None, tan=None):
         rq = dr.rsqrt(q)
         m2 = pp * rq * rq
         s = tdot * rq
-        base0 = L * rq * dr.exp(-0.5 * dr.minimum(m2, C.E2))
+        base0 = L * rq * dr.exp(-0.5 * dr.minimum(m2, det.E2))
         Phi = _phi(s)
         return su_len, D, q, c, rq, m2, s, base0, Phi
 
@@ -675,23 +680,23 @@ def _near_kernel(mode, C, th, vbase, rec, row, image, gimage=None, tan=None):
         return gD, gg, base0 * Phi
 
     j0 = I32(0)
-    last = C.nu - 1
-    if mode == "primal":
+    last = det.nu - 1
+    if mode == dr.ADMode.Primal:
         def body(j):
             _, _, _, _, _, m2, _, base0, Phi = pixel(j)
-            dr.scatter_add(image, amp * base0 * Phi, mi.UInt32(pix0 + j), active=m2 <= C.E2, mode=smode)
+            dr.scatter_add(image, amp * base0 * Phi, mi.UInt32(pix0 + j), active=m2 <= det.E2, mode=smode)
             return (j + 1,)
         dr.while_loop((j0,), lambda j: j <= last, body, labels=("j",), label="rg_near_primal")
         return None
-    if mode == "forward":
+    if mode == dr.ADMode.Forward:
         def body(j):
             su_len, D, q, c, rq, m2, s, base0, Phi = pixel(j)
             gD, gg, bphi = dI(D, q, c, rq, m2, s, base0, Phi)
             dval = bphi * tt["amp"]
             for l in range(3):
-                dD = tt[f"M{l}0"] * C.h + tt[f"M{l}1"] * su_len + tt[f"M{l}2"] * sv_len
+                dD = tt[f"M{l}0"] * det.h + tt[f"M{l}1"] * su_len + tt[f"M{l}2"] * sv_len
                 dval = dval + gD[l] * dD + gg[l] * tt[f"g{l}"]
-            dr.scatter_add(image, dval, mi.UInt32(pix0 + j), active=m2 <= C.E2, mode=smode)
+            dr.scatter_add(image, dval, mi.UInt32(pix0 + j), active=m2 <= det.E2, mode=smode)
             return (j + 1,)
         dr.while_loop((j0,), lambda j: j <= last, body, labels=("j",), label="rg_near_forward")
         return None
@@ -700,7 +705,7 @@ def _near_kernel(mode, C, th, vbase, rec, row, image, gimage=None, tan=None):
 
     def body(j, *acc):
         su_len, D, q, c, rq, m2, s, base0, Phi = pixel(j)
-        act = m2 <= C.E2
+        act = m2 <= det.E2
         g = dr.gather(F, gimage, mi.UInt32(pix0 + j), active=act)
         gD, gg, bphi = dI(D, q, c, rq, m2, s, base0, Phi)
         acc = list(acc)
@@ -716,7 +721,7 @@ def _near_kernel(mode, C, th, vbase, rec, row, image, gimage=None, tan=None):
     acc = out[1:]
     gr = {"amp": acc[9]}
     for l in range(3):
-        gr[f"M{l}0"] = acc[l] * C.h
+        gr[f"M{l}0"] = acc[l] * det.h
         gr[f"M{l}1"] = acc[3 + l]
         gr[f"M{l}2"] = acc[l] * sv_len
         gr[f"g{l}"] = acc[6 + l]
@@ -750,6 +755,27 @@ def _expand_rows(n_rows_np: np.ndarray, row_lo, max_items: int):
         start = end
 
 
+def segment_lanes(counts, skip: int, total: int):
+    """Expand segments into lanes: for lane j in [0, total) its segment ``slot`` and its
+    ``offset`` inside the segment (both mi.UInt32 [total]).
+
+    Segment i holds ``counts[i]`` (mi.UInt32) items; the first ``skip`` items of segment 0
+    are left out. An exclusive ``dr.prefix_sum`` gives each segment's first item; a marker
+    per segment start and an inclusive prefix sum over the items give each item its
+    segment (empty segments share their start with the next one and never win). Used for
+    the projector's (record, row) lanes and the voxelizer's (Gaussian, column) lanes."""
+    UInt32 = mi.UInt32
+    first = dr.prefix_sum(counts)
+    skip_u = dr.opaque(UInt32, skip)
+    pos = first - skip_u                 # wraps for segment 0: masked by k > 0
+    k = dr.arange(UInt32, dr.width(counts))
+    marker = dr.zeros(UInt32, total)
+    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & (pos < total))
+    slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)
+    offset = dr.arange(UInt32, total) + skip_u - dr.gather(UInt32, first, slot)
+    return slot, offset
+
+
 def _plan_chunks(n: int, n_views: int, npix: int):
     """(v0, v1, g0, g1) blocks of at most RECORDS_PER_CHUNK records and PIXELS_PER_CHUNK
     image floats (view-major)."""
@@ -767,42 +793,62 @@ def _plan_chunks(n: int, n_views: int, npix: int):
 class _Prepared:
     """Classification and footprints of one chunk (all detached)."""
 
-    def __init__(self, G, VD, C, v0, v1, g0, g1, means2d, n_gauss):
+    def __init__(self, gauss, views, det, v0, v1, g0, g1, means2d, n_gauss):
         U = mi.UInt32
         self.v0, self.v1 = v0, v1
         nvc, ngc = v1 - v0, g1 - g0
-        gi = g0 + dr.tile(dr.arange(U, ngc), nvc)
+        # One view and every Gaussian (a training iteration): the records are the Gaussians
+        # themselves, indexed directly (gi = None) and not compacted to the regular ones
+        # (non-regular records get no rows).
+        identity = (nvc == 1 and ngc == n_gauss
+                    and (means2d is None or dr.width(means2d) == n_gauss))
+        gi = None if identity else g0 + dr.tile(dr.arange(U, ngc), nvc)
         vi = v0 + dr.repeat(dr.arange(U, nvc), ngc)
-        dr.eval(gi, vi)   # keeps the sizes (literals) out of the big kernels below
+        dr.eval(vi)   # keeps the sizes (literals) out of the big kernels below
+        if gi is not None:
+            dr.eval(gi)
         with dr.suspend_grad():
-            b = _Base(G, VD, C, gi, vi, means2d, n_gauss)
-            th = _regular_theta(b, C)
-            fp = _footprint(th, C)
-            if C.cone:
-                S_nn = _sigma_entry(b, 0, 0)
-                reach = b.Xn[0] + C.E * dr.sqrt(S_nn)       # front-most depth of the E-ellipsoid
-                regular = fp["ok"] & (b.Xn[0] > 0) & (_ghat2(b) >= C.margin2)
+            frame = _RecordFrame(gauss, views, det, gi, vi, means2d, n_gauss)
+            params = _regular_params(frame, det)
+            footprint = _footprint(params, det)
+            if det.cone:
+                S_nn = _sigma_entry(frame, 0, 0)
+                reach = frame.Xn[0] + det.E * dr.sqrt(S_nn)       # front-most depth of the E-ellipsoid
+                regular = footprint["ok"] & (frame.Xn[0] > 0) & (_ghat2(frame) >= det.margin2)
                 near = ~regular & (reach > 0)
             else:
-                regular = fp["ok"]
-            regular = regular & (fp["n_rows"] > 0)
-            fp.pop("ok")
-            dr.eval(regular, th, fp)
-            self.reg_ids = dr.compress(regular)
-            # parameters and footprints of the regular records, for the kernels
-            self.th = {k: dr.gather(mi.Float, v, self.reg_ids) for k, v in th.items()}
-            self.fp = {k: dr.gather(type(v), v, self.reg_ids) for k, v in fp.items()}
-            if C.cone:
-                dr.eval(near)
+                regular = footprint["ok"]
+                near = None
+            regular = regular & (footprint["n_rows"] > 0)
+            footprint.pop("ok")
+            if identity:
+                footprint["n_rows"] = dr.select(regular, footprint["n_rows"], 0)
+                self.params, self.footprint = params, footprint
+                dr.eval(params, footprint, near)   # one kernel
+                self.reg_ids = None
+            else:
+                dr.eval(regular, params, footprint, near)
+                self.reg_ids = dr.compress(regular)
+                # parameters and footprints of the regular records, for the kernels
+                self.params = {k: dr.gather(mi.Float, v, self.reg_ids) for k, v in params.items()}
+                self.footprint = {k: dr.gather(type(v), v, self.reg_ids)
+                                  for k, v in footprint.items()}
+            if det.cone:
                 self.near_ids = dr.compress(near)
             else:
                 self.near_ids = U()
-        self.reg_gi = dr.gather(U, gi, self.reg_ids)
-        self.reg_vi = dr.gather(U, vi, self.reg_ids)
-        self.near_gi = dr.gather(U, gi, self.near_ids)
-        self.near_vi = dr.gather(U, vi, self.near_ids)
-        dr.eval(self.reg_gi, self.reg_vi, self.near_gi, self.near_vi, self.th, self.fp)
-        self.n_reg = dr.width(self.reg_ids)
+        if identity:
+            self.reg_gi, self.reg_vi = None, vi
+            self.near_gi, self.near_vi = self.near_ids, dr.gather(U, vi, self.near_ids)
+        else:
+            self.reg_gi = dr.gather(U, gi, self.reg_ids)
+            self.reg_vi = dr.gather(U, vi, self.reg_ids)
+            self.near_gi = dr.gather(U, gi, self.near_ids)
+            self.near_vi = dr.gather(U, vi, self.near_ids)
+        dr.eval(self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint)
+        if self.reg_gi is not None:
+            dr.eval(self.reg_gi)
+        self.n_reg = ngc if identity else dr.width(self.reg_ids)
         self.n_near = dr.width(self.near_ids)
         self._batches = None
 
@@ -811,132 +857,141 @@ class _Prepared:
         when they form a single batch (then the derivative pass reuses them)."""
         if self._batches is not None:
             return self._batches
-        n_rows = self.fp["n_rows"].numpy() if self.n_reg else np.zeros(0, np.uint32)
-        _tick("rows", {"rows_regular": int(n_rows.sum())})
-        gen = _expand_rows(n_rows, self.fp["row_lo"], ROWS_PER_BATCH)
-        if int(n_rows.sum()) <= ROWS_PER_BATCH:
-            self._batches = list(gen)
+        if not self.n_reg:
+            self._batches = []
             return self._batches
-        return gen
+        n_rows = self.footprint["n_rows"]
+        total = int(dr.sum(n_rows, axis=None)[0])
+        _tick("rows", {"rows_regular": total})
+        if total <= ROWS_PER_BATCH:
+            # one batch (the training case), expanded on the device: no host round trip
+            self._batches = []
+            if total:
+                rec, offset = segment_lanes(n_rows, 0, total)
+                row = mi.Int32(offset) + dr.gather(mi.Int32, self.footprint["row_lo"], rec)
+                dr.eval(rec, row)
+                self._batches.append((rec, row))
+            return self._batches
+        return _expand_rows(n_rows.numpy(), self.footprint["row_lo"], ROWS_PER_BATCH)
 
 
 # ====================================================================== the operation
-class _Cfg:
+class _ProjectionSetup:
     """Static configuration of one projection (a plain object: not a PyTree)."""
 
-    def __init__(self, geometry, VD, C, n, nviews):
-        self.geometry, self.VD, self.C, self.n, self.nviews = geometry, VD, C, n, nviews
+    def __init__(self, geometry, views, det, n, nviews):
+        self.geometry, self.views, self.det, self.n, self.nviews = geometry, views, det, n, nviews
 
 
-def _vbase(vi, C, v0=0):
+def _vbase(vi, det, v0=0):
     """Flat index of pixel (0, 0) of each record's view in an image that starts at view v0."""
-    return (vi - v0) * C.npix if v0 else vi * C.npix
+    return (vi - v0) * det.npix if v0 else vi * det.npix
 
 
 class _ProjectOp(dr.CustomOp):
     """Differentiable projection; inputs are the Gaussians' arrays (see project_dr)."""
 
-    def eval(self, positions, scales, rotations, densities, density_scale, means2d, cfg):
+    def eval(self, positions, scales, rotations, densities, density_scale, means2d, setup):
         self.inputs = (positions, scales, rotations, densities, density_scale, means2d)
-        self.cfg = cfg
-        G = _gaussian_arrays(Gaussians(positions, scales, rotations, densities), density_scale)
+        self.setup = setup
+        gauss = _gaussian_arrays(Gaussians(positions, scales, rotations, densities), density_scale)
         _tick("setup")
-        return self._by_chunk(G, means2d, "primal")
+        return self._by_chunk(gauss, means2d, dr.ADMode.Primal)
 
-    def _by_chunk(self, G, means2d, mode, tangent_src=None):
+    def _by_chunk(self, gauss, means2d, mode, tangent_src=None):
         """Primal or tangent image: each chunk scatters into an image of its own views only
         (small targets keep ReduceMode.Expand cheap), then adds it into the full image."""
-        C, nviews = self.cfg.C, self.cfg.nviews
-        image = dr.zeros(mi.Float, nviews * C.npix_py)
-        for prep in self._chunks(G, means2d):
+        det, nviews = self.setup.det, self.setup.nviews
+        image = dr.zeros(mi.Float, nviews * det.npix_py)
+        for prep in self._chunks(gauss, means2d):
             _tick("classify")
             if prep.v0 == 0 and prep.v1 == nviews:
-                self._run(prep, G, means2d, mode, image, tangent_src=tangent_src)
+                self._run(prep, gauss, means2d, mode, image, tangent_src=tangent_src)
                 continue
-            part = dr.zeros(mi.Float, (prep.v1 - prep.v0) * C.npix_py)
-            self._run(prep, G, means2d, mode, part, tangent_src=tangent_src)
-            idx = dr.arange(mi.UInt32, dr.width(part)) + prep.v0 * C.npix_py
+            part = dr.zeros(mi.Float, (prep.v1 - prep.v0) * det.npix_py)
+            self._run(prep, gauss, means2d, mode, part, tangent_src=tangent_src)
+            idx = dr.arange(mi.UInt32, dr.width(part)) + prep.v0 * det.npix_py
             dr.scatter_add(image, part, idx)
             dr.eval(image)
         dr.eval(image)
         return image
 
     # ---------------------------------------------------------------- helpers
-    def _chunks(self, G, means2d):
+    def _chunks(self, gauss, means2d):
         """Prepared chunks; a single chunk (the common training case) is kept from the
         primal pass for the derivative passes (it depends only on the primal inputs)."""
-        cfg = self.cfg
+        setup = self.setup
         cached = getattr(self, "_single", None)
         if cached is not None:
             yield cached
             return
-        plan = list(_plan_chunks(cfg.n, cfg.nviews, cfg.C.npix_py))
+        plan = list(_plan_chunks(setup.n, setup.nviews, setup.det.npix_py))
         for v0, v1, g0, g1 in plan:
-            prep = _Prepared(G, cfg.VD, cfg.C, v0, v1, g0, g1, means2d, cfg.n)
+            prep = _Prepared(gauss, setup.views, setup.det, v0, v1, g0, g1, means2d, setup.n)
             if len(plan) == 1:
                 self._single = prep
             yield prep
 
-    def _theta(self, G, means2d, prep, which):
-        cfg = self.cfg
-        C = cfg.C
+    def _record_params(self, gauss, means2d, prep, which):
+        setup = self.setup
+        det = setup.det
         gi, vi = (prep.reg_gi, prep.reg_vi) if which == "reg" else (prep.near_gi, prep.near_vi)
-        b = _Base(G, cfg.VD, C, gi, vi, means2d, cfg.n)
-        return _regular_theta(b, C) if which == "reg" else _near_theta(b)
+        frame = _RecordFrame(gauss, setup.views, det, gi, vi, means2d, setup.n)
+        return _regular_params(frame, det) if which == "reg" else _near_params(frame)
 
-    def _run(self, prep, G, means2d, mode, image, gimage=None, tangent_src=None):
+    def _run(self, prep, gauss, means2d, mode, image, gimage=None, tangent_src=None):
         """Runs one chunk. Returns per-record gradients (backward) as dicts."""
-        C = self.cfg.C
+        det = self.setup.det
         out = {}
         if prep.n_reg:
-            th, fp = prep.th, prep.fp
+            params, footprint = prep.params, prep.footprint
             tan = None
-            if mode == "forward":
+            if mode == dr.ADMode.Forward:
                 tan = tangent_src(prep, "reg")
-            vbase = _vbase(prep.reg_vi, C, 0 if mode == "backward" else prep.v0)
-            if mode == "backward":
-                acc = {k: dr.zeros(mi.Float, prep.n_reg) for k in th}
+            vbase = _vbase(prep.reg_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
+            if mode == dr.ADMode.Backward:
+                acc = {k: dr.zeros(mi.Float, prep.n_reg) for k in params}
             _tick("records", {"records_regular": prep.n_reg})
             for rec, row in prep.row_batches():
                 if _PROFILE is not None:
                     _tick("expand")
                     with dr.suspend_grad():
-                        uc = dr.gather(mi.Float, th["uc"], rec)
-                        vc = dr.gather(mi.Float, th["vc"], rec)
-                        lo, hi = _row_interval(C, uc, mi.Float(row) + 0.5 - vc, fp, rec)
+                        uc = dr.gather(mi.Float, params["uc"], rec)
+                        vc = dr.gather(mi.Float, params["vc"], rec)
+                        lo, hi = _row_interval(det, uc, mi.Float(row) + 0.5 - vc, footprint, rec)
                         cnt = dr.sum(mi.Float(dr.maximum(hi - lo + 1, 0)), axis=None)
                         _tick("count", {"pixels_regular": int(cnt[0])})
-                r = _regular_kernel(mode, C, th, fp, vbase, rec, row, image, gimage, tan)
-                if mode == "backward":
+                r = _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage, tan)
+                if mode == dr.ADMode.Backward:
                     for k, val in r.items():
                         dr.scatter_add(acc[k], val, rec, mode=dr.ReduceMode.Local)
                     dr.eval(acc)
                 else:
                     dr.eval(image)
-                _tick("kernel_" + mode)
-            if mode == "backward":
+                _tick("kernel_" + mode.name.lower())
+            if mode == dr.ADMode.Backward:
                 out["reg"] = acc
         if prep.n_near:
             with dr.suspend_grad():
-                th = self._theta(G, means2d, prep, "near")
-                dr.eval(th)
-            tan = tangent_src(prep, "near") if mode == "forward" else None
-            vbase = _vbase(prep.near_vi, C, 0 if mode == "backward" else prep.v0)
-            n_rows = np.full(prep.n_near, C.nv_py, np.uint32)
+                params = self._record_params(gauss, means2d, prep, "near")
+                dr.eval(params)
+            tan = tangent_src(prep, "near") if mode == dr.ADMode.Forward else None
+            vbase = _vbase(prep.near_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
+            n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
             row_lo = dr.zeros(mi.Int32, prep.n_near)
-            if mode == "backward":
-                acc = {k: dr.zeros(mi.Float, prep.n_near) for k in th}
+            if mode == dr.ADMode.Backward:
+                acc = {k: dr.zeros(mi.Float, prep.n_near) for k in params}
             _tick("records", {"records_near": prep.n_near})
             for rec, row in _expand_rows(n_rows, row_lo, ROWS_PER_BATCH):
-                r = _near_kernel(mode, C, th, vbase, rec, row, image, gimage, tan)
-                if mode == "backward":
+                r = _near_kernel(mode, det, params, vbase, rec, row, image, gimage, tan)
+                if mode == dr.ADMode.Backward:
                     for k, val in r.items():
                         dr.scatter_add(acc[k], val, rec, mode=dr.ReduceMode.Local)
                     dr.eval(acc)
                 else:
                     dr.eval(image)
-                _tick("kernel_near_" + mode)
-            if mode == "backward":
+                _tick("kernel_near_" + mode.name.lower())
+            if mode == dr.ADMode.Backward:
                 out["near"] = acc
         return out
 
@@ -962,21 +1017,21 @@ class _ProjectOp(dr.CustomOp):
         leaves = self._leaves()
         pos, sc, rot, den, dsc, md = leaves
         with dr.suspend_grad():
-            G0 = _gaussian_arrays(Gaussians(*self.inputs[:4]), self.inputs[4])
+            gauss0 = _gaussian_arrays(Gaussians(*self.inputs[:4]), self.inputs[4])
         _tick("setup_backward")
-        for prep in self._chunks(G0, self.inputs[5]):
+        for prep in self._chunks(gauss0, self.inputs[5]):
             _tick("classify_backward")
-            grads = self._run(prep, G0, self.inputs[5], "backward", None, gimage)
+            grads = self._run(prep, gauss0, self.inputs[5], dr.ADMode.Backward, None, gimage)
             if not grads:
                 continue
             with dr.resume_grad():
-                G = _gaussian_arrays(Gaussians(pos, sc, rot, den), dsc)
+                gauss = _gaussian_arrays(Gaussians(pos, sc, rot, den), dsc)
                 for which, acc in grads.items():
-                    th = self._theta(G, md, prep, which)
-                    live = [k for k, v in th.items() if dr.grad_enabled(v)]
+                    params = self._record_params(gauss, md, prep, which)
+                    live = [k for k, v in params.items() if dr.grad_enabled(v)]
                     for k in live:
-                        dr.set_grad(th[k], acc[k])
-                    dr.enqueue(dr.ADMode.Backward, *[th[k] for k in live])
+                        dr.set_grad(params[k], acc[k])
+                    dr.enqueue(dr.ADMode.Backward, *[params[k] for k in live])
                 dr.traverse(dr.ADMode.Backward)
             _tick("ad_backward")
         names = ("positions", "scales", "rotations", "densities", "density_scale", "means2d")
@@ -992,22 +1047,22 @@ class _ProjectOp(dr.CustomOp):
                 dr.set_grad(leaf, self.grad_in(name))
         pos, sc, rot, den, dsc, md = leaves
         with dr.suspend_grad():
-            G0 = _gaussian_arrays(Gaussians(*self.inputs[:4]), self.inputs[4])
+            gauss0 = _gaussian_arrays(Gaussians(*self.inputs[:4]), self.inputs[4])
 
         def tangent_src(prep, which):
             with dr.resume_grad():
-                G = _gaussian_arrays(Gaussians(pos, sc, rot, den), dsc)
-                th = self._theta(G, md, prep, which)
-                live = [v for v in th.values() if dr.grad_enabled(v)]
+                gauss = _gaussian_arrays(Gaussians(pos, sc, rot, den), dsc)
+                params = self._record_params(gauss, md, prep, which)
+                live = [v for v in params.values() if dr.grad_enabled(v)]
                 # keep the leaves' tangents for the next chunk (no ClearInput)
                 dr.forward_to(*live, flags=dr.ADFlag.ClearEdges | dr.ADFlag.ClearInterior
                               | dr.ADFlag.AllowNoGrad)
                 tan = {k: dr.grad(v) if dr.grad_enabled(v) else dr.zeros(mi.Float, dr.width(v))
-                       for k, v in th.items()}
+                       for k, v in params.items()}
                 dr.eval(tan)
                 return tan
 
-        self.set_grad_out(self._by_chunk(G0, self.inputs[5], "forward", tangent_src))
+        self.set_grad_out(self._by_chunk(gauss0, self.inputs[5], dr.ADMode.Forward, tangent_src))
 
     def name(self):
         return "RGProjector"
@@ -1058,10 +1113,11 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
         density_scale = mi.Float(density_scale)
     _validate(gaussians, n, density_scale, means2d, nviews)
     fr = view_frames(geometry)
-    cfg = _Cfg(geometry, _ViewData(fr), _Consts(fr, geometry, extent), n, nviews)
+    setup = _ProjectionSetup(geometry, _ViewFrameArrays(fr),
+                             _DetectorConstants(fr, geometry, extent), n, nviews)
     g = gaussians
     flat = dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
-                     density_scale, means2d, cfg)
+                     density_scale, means2d, setup)
     return mi.TensorXf(flat, shape=(nviews, nv, nu))
 
 

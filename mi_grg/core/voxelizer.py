@@ -20,10 +20,13 @@ Method (work proportional to the number of (Gaussian, voxel) pairs, not N x voxe
    (~half of the box's voxels) and loops over those voxels (a symbolic loop, no
    per-voxel gathers): rho exp(-m^2/2), ``dr.scatter_add`` into the voxel. Voxels are
    contiguous along z ([x, y, z] order), so a lane writes consecutive addresses.
+   The backward pass expands (Gaussian, x) *slices* instead, one lane looping over the
+   slice's columns and their voxels, so that the per-lane gradient sums need one atomic
+   per slice rather than per column.
 
-Columns are processed in chunks of at most ``chunk_pairs`` (Gaussian, voxel) pairs (cut
-anywhere, also inside one Gaussian's box), so memory stays bounded by the volume plus one
-chunk of columns, for 256^3 volumes and 10^6 Gaussians alike.
+Columns (slices) are processed in chunks of at most ``chunk_pairs`` (Gaussian, voxel)
+pairs (cut anywhere, also inside one Gaussian's box), so memory stays bounded by the volume
+plus one chunk of lanes, for 256^3 volumes and 10^6 Gaussians alike.
 
 Truncation: ``DEFAULT_EXTENT`` is the projector's (``mi_grg.core.projector``) so that both use
 one number; the projector cuts a Gaussian where the *ray's* Mahalanobis distance exceeds
@@ -34,12 +37,12 @@ Derivatives (``voxelize_dr``) flow to positions, scales, rotations, densities an
 ``density_scale`` through a ``dr.CustomOp`` whose forward/backward passes recompute the
 pairs chunk by chunk with the analytic derivatives of rho exp(-m^2/2) with respect to
 rho, p and Sigma^-1; Sigma^-1 comes from ``mi_grg.core.gaussians.inverse_covariance`` under
-Dr.Jit's normal AD. The backward pass accumulates each column's gradient in registers
-(one atomic per column and parameter, not per voxel). The truncation boundary is treated
+Dr.Jit's normal AD. The backward pass accumulates each slice's gradient in registers
+(one atomic per slice and parameter, not per voxel). The truncation boundary is treated
 as fixed (its jump is rho exp(-extent^2/2)).
 
 Inputs are checked as the projector checks them (finite, scales > 0, densities >= 0,
-rotations unit quaternions to ``projector.QUATERNION_TOL``, zero ones rejected), and the
+rotations unit quaternions to ``gaussians.QUATERNION_TOL``, zero ones rejected), and the
 rotations are normalised internally, so the rotation gradient is tangent to the unit sphere.
 """
 from __future__ import annotations
@@ -56,7 +59,8 @@ from mi_grg.core.gaussians import Gaussians, inverse_covariance, rotation_matrix
 from mi_grg.core.geometry import Geometry
 # one truncation rule, one set of input checks and one quaternion normalisation for the
 # projector and the voxelizer
-from mi_grg.core.projector import DEFAULT_EXTENT, first_failure, gaussian_checks, unit_quaternions
+from mi_grg.core.projector import (DEFAULT_EXTENT, first_failure, gaussian_checks,
+                                   segment_lanes, unit_quaternions)
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -125,7 +129,7 @@ def _check_inputs(gaussians, extent, density_scale):
 
 
 # ---------------------------------------------------------------- the pair plan
-#: Cost of one column in units of voxel pairs when cutting chunks (its ~10 stored values).
+#: Cost of one column in units of voxel pairs when cutting chunks (its set-up).
 _COLUMN_COST = 8
 
 
@@ -136,12 +140,48 @@ class _Plan:
     size: tuple           # block size [x, y, z]
     lo: list              # 3 x mi.Int32 [N]: first voxel index of each box (absolute)
     n: list               # 3 x mi.UInt32 [N]: box size in voxels per axis (clipped)
-    ncol: object          # mi.UInt32 [N]: (x, y) columns per box
-    chunks: list          # [(ids mi.UInt32, skip int, columns int)]
+    ncol: object          # mi.UInt32 [N]: (x, y) columns per box (0: misses the block)
+    nslice: object        # mi.UInt32 [N]: x slices per box (0: misses the block)
+    col_chunks: list      # [(ids mi.UInt32, skip int, columns int)]
+    slice_chunks: list    # [(ids mi.UInt32, skip int, slices int)]
     x0: tuple             # grid corner [x, y, z] (length): voxel i centre = x0 + (i+.5) d
     d: tuple              # voxel size [x, y, z] (length)
     ext2: float           # extent^2
     box_pairs: int        # sum of the box volumes (an upper bound of the pairs)
+    max_columns: int      # largest column count of one box
+
+
+#: Boxes with fewer columns than this split their column index in float32 (exact there).
+_FLOAT_DIV_MAX = 1 << 22
+
+
+def _cut_chunks(ids, units, weight, chunk_pairs: int) -> list:
+    """Cut the sequence of ``units`` (columns or slices) of the Gaussians ``ids``, laid end
+    to end, into chunks of <= ``chunk_pairs`` total ``weight`` (one unit's weight per
+    Gaussian), anywhere, also inside one Gaussian's box: [(ids, skip, units)]."""
+    chunks = []
+    if not ids.size:
+        return chunks
+    cols, w = units[ids], weight[ids]
+    c_end = np.cumsum(cols)
+    c_start = c_end - cols
+    w_end = np.cumsum(cols * w)
+    w_start = w_end - cols * w
+    total_cols = int(c_end[-1])
+    c0 = 0
+    while c0 < total_cols:
+        g0 = int(np.searchsorted(c_end, c0, side="right"))
+        target = w_start[g0] + (c0 - c_start[g0]) * w[g0] + chunk_pairs
+        g1 = int(np.searchsorted(w_end, target, side="right"))
+        if g1 >= ids.size:
+            c1 = total_cols
+        else:
+            c1 = int(c_start[g1] + (target - w_start[g1]) // w[g1])
+        c1 = max(min(c1, total_cols), c0 + 1)
+        b = int(np.searchsorted(c_start, c1, side="left"))
+        chunks.append((mi.UInt32(ids[g0:b].astype(np.uint32)), int(c0 - c_start[g0]), c1 - c0))
+        c0 = c1
+    return chunks
 
 
 def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pairs) -> _Plan:
@@ -171,83 +211,74 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
         nn.append(UInt32(dr.maximum(last - first + 1, 0)))
     dr.eval(lo, nn)
     nx, ny, nz = (np.asarray(x, np.int64) for x in nn)
-    ncol_np = nx * ny
-    ncol_np[nz == 0] = 0
-    ids = np.nonzero(ncol_np)[0]
-    chunks = []
-    box_pairs = 0
-    if ids.size:
-        cols = ncol_np[ids]
-        w = nz[ids] + _COLUMN_COST                       # weight of one column
-        c_end = np.cumsum(cols)
-        c_start = c_end - cols
-        w_end = np.cumsum(cols * w)
-        w_start = w_end - cols * w
-        box_pairs = int(np.sum(cols * nz[ids]))
-        total_cols = int(c_end[-1])
-        c0 = 0
-        while c0 < total_cols:   # cut the column sequence into chunks of <= chunk_pairs weight
-            g0 = int(np.searchsorted(c_end, c0, side="right"))
-            target = w_start[g0] + (c0 - c_start[g0]) * w[g0] + chunk_pairs
-            g1 = int(np.searchsorted(w_end, target, side="right"))
-            if g1 >= ids.size:
-                c1 = total_cols
-            else:
-                c1 = int(c_start[g1] + (target - w_start[g1]) // w[g1])
-            c1 = max(min(c1, total_cols), c0 + 1)
-            b = int(np.searchsorted(c_start, c1, side="left"))
-            chunks.append((UInt32(ids[g0:b].astype(np.uint32)), int(c0 - c_start[g0]), c1 - c0))
-            c0 = c1
-    return _Plan(start=start, size=size, lo=lo, n=nn, ncol=UInt32(ncol_np.astype(np.uint32)),
-                 chunks=chunks, x0=x0, d=d, ext2=extent * extent, box_pairs=box_pairs)
+    nslice = nx.copy()
+    nslice[(ny == 0) | (nz == 0)] = 0
+    ncol = nslice * ny
+    ids = np.nonzero(nslice)[0]
+    # forward: one lane per (x, y) column; backward: one lane per x slice (its columns in
+    # an outer loop), so that its per-lane sums need 1/ny of the atomics
+    return _Plan(start=start, size=size, lo=lo, n=nn, ncol=UInt32(ncol.astype(np.uint32)),
+                 nslice=UInt32(nslice.astype(np.uint32)),
+                 col_chunks=_cut_chunks(ids, ncol, nz + _COLUMN_COST, chunk_pairs),
+                 slice_chunks=_cut_chunks(ids, nslice, ny * (nz + _COLUMN_COST), chunk_pairs),
+                 x0=x0, d=d, ext2=extent * extent, box_pairs=int(np.sum((ncol * nz)[ids])),
+                 max_columns=int(ncol.max()) if ncol.size else 0)
 
 
-def _segments(counts, skip: int, total: int):
-    """Expand segments: for j in [0, total) its segment ``slot`` and offset in it.
-
-    Segment i holds ``counts[i]`` items, the first ``skip`` items of segment 0 are left
-    out. An exclusive ``dr.prefix_sum`` gives each segment's first item; a marker per
-    segment start and an inclusive prefix sum over the items give each item its segment
-    (empty segments share their start with the next one and never win)."""
-    UInt32 = mi.UInt32
-    first = dr.prefix_sum(counts)
-    skip_u = dr.opaque(UInt32, skip)
-    pos = first - skip_u                 # wraps for segment 0: masked by k > 0
-    k = dr.arange(UInt32, dr.width(counts))
-    marker = dr.zeros(UInt32, total)
-    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & (pos < total))
-    slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)
-    offset = dr.arange(UInt32, total) + skip_u - dr.gather(UInt32, first, slot)
-    return slot, offset
-
-
-def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho) -> dict:
-    """The (Gaussian, x, y) columns of one chunk, one lane each, with the column's exact
-    z-range inside the ellipsoid m <= extent (the roots of the quadratic m^2(z) =
-    extent^2, clipped to the block). Left unevaluated: it fuses into the loop kernel."""
-    UInt32, Int32, Float = mi.UInt32, mi.Int32, mi.Float
-    slot, local = _segments(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
-    g = dr.gather(UInt32, ids, slot)
-    # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0), as
-    # integer division by zero traps on x86
-    ny = dr.maximum(dr.gather(UInt32, plan.n[1], g), 1)
-    ix = local // ny
-    iy = local - ix * ny
+def _lane(plan: _Plan, g, ix, p, a, rho) -> dict:
+    """Gaussian g's values and its box's x slice ix (one lane each)."""
+    Int32, Float = mi.Int32, mi.Float
     ax = dr.gather(Int32, plan.lo[0], g) + Int32(ix)
-    ay = dr.gather(Int32, plan.lo[1], g) + Int32(iy)
+    px, py, pz = (dr.gather(Float, c, g) for c in p)
+    return {"g": g, "ax": ax, "ay0": dr.gather(Int32, plan.lo[1], g),
+            "ny": dr.gather(mi.UInt32, plan.n[1], g),
+            "dx": dr.opaque(Float, plan.x0[0]) + (Float(ax) + 0.5) * dr.opaque(Float, plan.d[0]) - px,
+            "py": py, "pz": pz, "a": tuple(dr.gather(Float, c, g) for c in a),
+            "rho": dr.gather(Float, rho, g)}
+
+
+def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho) -> dict:
+    """The (Gaussian, x) slices of one chunk, one lane each. Left unevaluated: it fuses
+    into the loop kernel."""
+    slot, ix = segment_lanes(dr.gather(mi.UInt32, plan.nslice, ids), skip, n_slices)
+    return _lane(plan, dr.gather(mi.UInt32, ids, slot), ix, p, a, rho)
+
+
+def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho):
+    """The (Gaussian, x, y) columns of one chunk, one lane each: (lane, column)."""
+    UInt32, Float = mi.UInt32, mi.Float
+    slot, local = segment_lanes(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
+    g = dr.gather(UInt32, ids, slot)
+    # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0)
+    ny = dr.maximum(dr.gather(UInt32, plan.n[1], g), 1)
+    if plan.max_columns < _FLOAT_DIV_MAX:
+        # local // ny in float32: SIMD integer division does not exist on x86 (LLVM emits
+        # one scalar division per lane). Exact: local < nx ny < 2^22 and (local + 1/2) / ny
+        # stays >= 1 / (2 ny) away from an integer, far above float32 rounding.
+        ix = UInt32(dr.floor((Float(local) + 0.5) / Float(ny)))
+    else:
+        ix = local // ny
+    lane = _lane(plan, g, ix, p, a, rho)
+    return lane, _column(plan, lane, local - ix * ny)
+
+
+def _column(plan: _Plan, lane: dict, iy) -> dict:
+    """Column iy of a slice: its exact z-range inside the ellipsoid m <= extent (the roots
+    of the quadratic m^2(z) = extent^2, clipped to the block)."""
+    UInt32, Int32, Float = mi.UInt32, mi.Int32, mi.Float
     x0 = [dr.opaque(Float, v) for v in plan.x0]
     dv = [dr.opaque(Float, v) for v in plan.d]
-    px, py, pz = (dr.gather(Float, c, g) for c in p)
-    a00, a01, a02, a11, a12, a22 = (dr.gather(Float, c, g) for c in a)
-    dx = x0[0] + (Float(ax) + 0.5) * dv[0] - px
-    dy = x0[1] + (Float(ay) + 0.5) * dv[1] - py
+    a00, a01, a02, a11, a12, a22 = lane["a"]
+    dx = lane["dx"]
+    ay = lane["ay0"] + Int32(iy)
+    dy = x0[1] + (Float(ay) + 0.5) * dv[1] - lane["py"]
     # m^2(dz) = a22 dz^2 + 2 beta dz + gamma along the column
     beta = a02 * dx + a12 * dy
     gamma = dx * (a00 * dx + 2 * a01 * dy) + a11 * dy * dy
     disc = dr.square(beta) - a22 * (gamma - dr.opaque(Float, plan.ext2))
     inv_a22 = dr.rcp(a22)
     half = dr.sqrt(dr.maximum(disc, 0)) * inv_a22 * (1 + 1e-4)   # widened: m^2 test decides
-    zc = pz - beta * inv_a22
+    zc = lane["pz"] - beta * inv_a22
     inv_dz = dr.rcp(dv[2])
     zs = dr.opaque(Float, plan.start[2])
     ze = dr.opaque(Float, plan.start[2] + plan.size[2])
@@ -258,58 +289,63 @@ def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho) -> dict:
     st = [dr.opaque(Int32, v) for v in plan.start]
     sy = dr.opaque(Int32, plan.size[1])
     sz = dr.opaque(Int32, plan.size[2])
-    return {"g": g, "count": count,
-            "base": UInt32(((ax - st[0]) * sy + (ay - st[1])) * sz + (az - st[2])),
-            "dx": dx, "dy": dy, "dz0": x0[2] + (Float(az) + 0.5) * dv[2] - pz,
-            "beta2": 2 * beta, "gamma": gamma, "a": (a00, a01, a02, a11, a12, a22),
-            "rho": dr.gather(Float, rho, g)}
+    return {"count": count,
+            "base": UInt32(((lane["ax"] - st[0]) * sy + (ay - st[1])) * sz + (az - st[2])),
+            "dy": dy, "dz0": x0[2] + (Float(az) + 0.5) * dv[2] - lane["pz"],
+            "beta2": 2 * beta, "gamma": gamma}
 
 
-def _chunks(plan: _Plan, p, a, rho):
-    """The columns of each chunk, one chunk at a time."""
-    for ids, skip, n_cols in plan.chunks:
-        yield _columns(plan, ids, skip, n_cols, p, a, rho)
-
-
-def _column_loop(plan: _Plan, c: dict, state: tuple, step):
-    """Run ``step(k, dz, m2, inside, *state) -> state`` over the voxels k of each column
-    (a symbolic loop: one lane per column, no per-voxel gathers)."""
-    Float, UInt32 = mi.Float, mi.UInt32
+def _voxel_loop(plan: _Plan, lane: dict, c: dict, state: tuple, step):
+    """Run ``step(c, k, dz, m2, inside, *state) -> state`` over the voxels k of column c
+    (a symbolic loop, no per-voxel gathers)."""
+    Float = mi.Float
     dzv = dr.opaque(Float, plan.d[2])
     ext2 = dr.opaque(Float, plan.ext2)
-    count, dz0, beta2, gamma, a22 = c["count"], c["dz0"], c["beta2"], c["gamma"], c["a"][5]
+    a22 = lane["a"][5]
+    count, dz0, beta2, gamma = c["count"], c["dz0"], c["beta2"], c["gamma"]
 
     def body(k, *st):
         dz = dr.fma(Float(k), dzv, dz0)
         m2 = gamma + dz * (beta2 + a22 * dz)
-        return (k + 1, *step(k, dz, m2, m2 <= ext2, *st))
+        return (k + 1, *step(c, k, dz, m2, m2 <= ext2, *st))
 
-    out = dr.while_loop((dr.zeros(UInt32, dr.width(count)), *state),
+    out = dr.while_loop((dr.zeros(mi.UInt32, dr.width(lane["g"])), *state),
                         lambda k, *st: k < count, body, label="voxelize_column")
+    return out[1:]
+
+
+def _column_loop(plan: _Plan, lane: dict, state: tuple, step):
+    """``_voxel_loop`` over every column of each slice lane (an outer symbolic loop)."""
+    def column_body(iy, *st):
+        return (iy + 1, *_voxel_loop(plan, lane, _column(plan, lane, iy), st, step))
+
+    out = dr.while_loop((dr.zeros(mi.UInt32, dr.width(lane["g"])), *state),
+                        lambda iy, *st: iy < lane["ny"], column_body, label="voxelize_slice")
     return out[1:]
 
 
 def _forward(plan: _Plan, p, a, rho):
     Float = mi.Float
     out = dr.zeros(Float, int(np.prod(plan.size)))
-    for c in _chunks(plan, p, a, rho):
-        base, r = c["base"], c["rho"]
+    for ids, skip, n_cols in plan.col_chunks:
+        lane, col = _columns(plan, ids, skip, n_cols, p, a, rho)
+        r = lane["rho"]
 
-        def step(k, dz, m2, inside):
+        def step(c, k, dz, m2, inside):
             val = r * dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR))
             # Direct: lanes hit distinct addresses, a packet-local reduction only costs
-            dr.scatter_add(out, val, base + k, active=inside, mode=dr.ReduceMode.Direct)
+            dr.scatter_add(out, val, c["base"] + k, active=inside, mode=dr.ReduceMode.Direct)
             return ()
 
-        _column_loop(plan, c, (), step)
+        _voxel_loop(plan, lane, col, (), step)
         dr.eval(out)   # one chunk at a time: bounded memory
     return out
 
 
-def _terms(c, dz, m2, inside):
+def _terms(lane, c, dz, m2, inside):
     """Per voxel: A d, exp(-m^2/2) (0 outside the ellipsoid)."""
-    a00, a01, a02, a11, a12, a22 = c["a"]
-    dx, dy = c["dx"], c["dy"]
+    a00, a01, a02, a11, a12, a22 = lane["a"]
+    dx, dy = lane["dx"], c["dy"]
     ad = (a00 * dx + a01 * dy + a02 * dz, a01 * dx + a11 * dy + a12 * dz,
           a02 * dx + a12 * dy + a22 * dz)
     e = dr.select(inside, dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR)), 0.0)
@@ -330,14 +366,16 @@ class _VoxelizeOp(dr.CustomOp):
         ta = [dr.zeros(Float, n) + t for t in self.grad_in("a")]
         trho = dr.zeros(Float, n) + self.grad_in("rho")
         out = dr.zeros(Float, int(np.prod(self.plan.size)))
-        for c in _chunks(self.plan, self.p, self.a, self.rho):
-            g, dx, dy, base, r = c["g"], c["dx"], c["dy"], c["base"], c["rho"]
+        for ids, skip, n_cols in self.plan.col_chunks:
+            lane, col = _columns(self.plan, ids, skip, n_cols, self.p, self.a, self.rho)
+            g, dx, r = lane["g"], lane["dx"], lane["rho"]
             t = [dr.gather(Float, x, g) for x in tp]
             s = [dr.gather(Float, x, g) for x in ta]
             tr = dr.gather(Float, trho, g)
 
-            def step(k, dz, m2, inside):
-                ad, e = _terms(c, dz, m2, inside)
+            def step(c, k, dz, m2, inside):
+                dy, base = c["dy"], c["base"]
+                ad, e = _terms(lane, c, dz, m2, inside)
                 val = r * e
                 quad = (s[0] * dx * dx + s[3] * dy * dy + s[5] * dz * dz
                         + 2 * (s[1] * dx * dy + s[2] * dx * dz + s[4] * dy * dz))
@@ -345,7 +383,7 @@ class _VoxelizeOp(dr.CustomOp):
                 dr.scatter_add(out, dval, base + k, active=inside, mode=dr.ReduceMode.Direct)
                 return ()
 
-            _column_loop(self.plan, c, (), step)
+            _voxel_loop(self.plan, lane, col, (), step)
             dr.eval(out)
         self.set_grad_out(out)
 
@@ -356,13 +394,15 @@ class _VoxelizeOp(dr.CustomOp):
         gp = [dr.zeros(Float, n) for _ in range(3)]
         ga = [dr.zeros(Float, n) for _ in range(6)]
         grho = dr.zeros(Float, n)
-        mode = dr.ReduceMode.Local   # neighbouring columns mostly share their Gaussian
-        for c in _chunks(self.plan, self.p, self.a, self.rho):
-            g, dx, dy, base, r = c["g"], c["dx"], c["dy"], c["base"], c["rho"]
+        mode = dr.ReduceMode.Local   # neighbouring slices mostly share their Gaussian
+        for ids, skip, n_slices in self.plan.slice_chunks:
+            lane = _slices(self.plan, ids, skip, n_slices, self.p, self.a, self.rho)
+            g, dx, r = lane["g"], lane["dx"], lane["rho"]
 
-            def step(k, dz, m2, inside, sp, sa, sr):
-                ad, e = _terms(c, dz, m2, inside)
-                gv = dr.gather(Float, go, base + k, inside)
+            def step(c, k, dz, m2, inside, sp, sa, sr):
+                dy = c["dy"]
+                ad, e = _terms(lane, c, dz, m2, inside)
+                gv = dr.gather(Float, go, c["base"] + k, inside)
                 w = gv * r * e
                 # d val/d p = val A d; d val/d A_ij = -1/2 val d_i d_j (x2 off the diagonal)
                 sp = tuple(acc + w * x for acc, x in zip(sp, ad))
@@ -371,8 +411,8 @@ class _VoxelizeOp(dr.CustomOp):
                 return sp, sa, sr + gv * e
 
             zero = dr.zeros(Float, dr.width(g))
-            sp, sa, sr = _column_loop(self.plan, c, ((zero,) * 3, (zero,) * 6, zero), step)
-            # one atomic per column and parameter (sums over the column's voxels)
+            sp, sa, sr = _column_loop(self.plan, lane, ((zero,) * 3, (zero,) * 6, zero), step)
+            # one atomic per slice and parameter (sums over the slice's voxels)
             for acc, x in zip(gp + ga + [grho], list(sp) + list(sa) + [sr]):
                 dr.scatter_add(acc, x, g, mode=mode)
             dr.eval(gp, ga, grho)
@@ -457,6 +497,6 @@ def pair_count(gaussians: Gaussians, geometry: Geometry, block=None, extent=None
         return {"box_pairs": 0, "pairs": 0}
     with dr.suspend_grad():
         plan, a = _plan_and_precision(g, geometry, start, size, extent, DEFAULT_CHUNK_PAIRS)
-        pairs = sum(int(dr.sum(c["count"])[0]) for c in _chunks(plan, g.positions, a,
-                                                                  g.densities))
+        pairs = sum(int(dr.sum(_columns(plan, *chunk, g.positions, a, g.densities)[1]["count"],
+                                   axis=None)[0]) for chunk in plan.col_chunks)
     return {"box_pairs": plan.box_pairs, "pairs": int(pairs)}
