@@ -1,6 +1,8 @@
 """Figures people would rather look at than read: orthogonal slice montages."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 
@@ -46,4 +48,45 @@ def slice_montage(path, pred: np.ndarray, gt: np.ndarray | None = None, title: s
     if title:
         fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, se: np.ndarray, result: dict,
+                      z_range: float = 4.0) -> None:
+    """Write the path-traced cross-check as a PNG: one row per view [view, v, u], columns
+    volpath transmittance, reference transmittance and (volpath - reference) / standard
+    error (clipped to +-``z_range``; where the standard error is 0 a difference shows as
+    +-``z_range``). Titles carry the numbers of ``result["views"]`` and the verdict."""
+    plt = _agg()
+    n = mc.shape[0]
+    fig, axes = plt.subplots(n, 3, figsize=(10.5, 3.1 * n + 0.8), squeeze=False)
+    diff = mc - ref
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(se > 0, diff / np.where(se > 0, se, 1.0),
+                     np.sign(diff) * z_range)
+    for k in range(n):
+        v = result["views"][k]
+        verdict = "PASS" if v["pass"] else "FAIL"
+        ax = axes[k]
+        im0 = ax[0].imshow(mc[k], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        ax[1].imshow(ref[k], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        im2 = ax[2].imshow(np.clip(z[k], -z_range, z_range), cmap="RdBu_r", vmin=-z_range,
+                           vmax=z_range, interpolation="nearest")
+        ax[0].set_title(f"view {k} ({v['angle_deg']:.1f} deg): volpath, {result['spp']} spp",
+                        fontsize=9)
+        ax[1].set_title(f"reference T, {result['object']}", fontsize=9)
+        ax[2].set_title(f"{verdict}: z = {v['z']:+.2f}, RMS diff {v['rms_difference']:.4f}\n"
+                        f"(expected {v['expected_rms_standard_error']:.4f}), max "
+                        f"{v['max_abs_difference']:.3f}", fontsize=9,
+                        color="black" if v["pass"] else "red")
+        for a in ax:
+            a.set_xticks([]), a.set_yticks([])
+        fig.colorbar(im0, ax=ax[:2].tolist(), shrink=0.8, label="transmittance I/I0")
+        fig.colorbar(im2, ax=ax[2], shrink=0.8, label="(volpath - ref) / SE")
+    verdict = "PASS" if result["pass"] else "FAIL"
+    fig.suptitle(f"{verdict}: volpath vs {result['reference']}\n{Path(result['scene']).name}, "
+                 f"{result['confidence']:.1%} confidence per view (|z| <= "
+                 f"{result['z_critical']:.2f}, no improbable pixel)", fontsize=10,
+                 color="black" if result["pass"] else "red")
+    fig.savefig(path, dpi=90)
     plt.close(fig)
