@@ -156,13 +156,13 @@ def cmd_render(args) -> int:
     view fails (crosscheck.json and crosscheck.png say where)."""
     from mi_grg.evaluation import crosscheck as cc
     if (args.scene is None) == (args.run is None):
-        raise SystemExit("mi-grg render: give a scene file (SCENE) or a finished run "
-                         "(--run OUT_DIR), not both or neither")
+        raise ValueError("give a scene file (SCENE, e.g. scenes/shepp_cone_volpath.xml) or a "
+                         "finished gr / r2 run (--run OUT_DIR), not both or neither")
     run_only = [f for f, v in (("--views", args.views), ("--det", args.det),
                                ("--data", args.data)) if v is not None]
     if args.scene is not None and run_only:
-        raise SystemExit(f"mi-grg render: {', '.join(run_only)} only apply with --run (a "
-                         "scene file states its own views and detector)")
+        raise ValueError(f"{', '.join(run_only)} only apply with --run (a scene file states "
+                         "its own views and detector)")
     if args.scene is not None:
         res = cc.render_scene(args.scene, args.spp, args.out, seed=args.seed,
                               confidence=args.confidence)

@@ -536,6 +536,20 @@ def view_statistics(mc: np.ndarray, ref: np.ndarray, spp: int,
     return out
 
 
+def binomial_z(mc: np.ndarray, ref: np.ndarray, spp: int) -> np.ndarray:
+    """Per pixel, (volpath - reference) / standard error as a binomial z-score: the normal
+    quantile of the mid-p value P(K < k) + P(K = k) / 2, K ~ Binomial(spp, T), k the
+    pixel's count. Where spp T (1 - T) is large this is (mc - T) / sqrt(T (1 - T) / spp);
+    where it is small (T near 0 or 1) it stays honest: one absorbed sample at T = 0.999
+    and 256 spp is z = -1.1, not the -8 of the normal formula. T = 1 with no absorbed
+    sample is 0; an impossible count (e.g. an absorbed sample at T = 1) is -inf / +inf."""
+    from scipy.stats import binom, norm
+    t = np.clip(np.asarray(ref, np.float64), 0, 1)
+    k = np.rint(np.asarray(mc, np.float64) * spp)
+    mid = binom.cdf(k - 1, spp, t) + 0.5 * binom.pmf(k, spp, t)
+    return norm.ppf(mid)
+
+
 def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CONFIDENCE,
                  extra: dict | None = None) -> dict:
     """Render a scene file as written with Mitsuba's ``volpath`` and compare each view's
@@ -543,7 +557,7 @@ def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CON
 
     Writes ``crosscheck.json`` (the returned dict: per view RMS / max difference, the
     expected Monte Carlo standard error, z, pass) and ``crosscheck.png`` (per view:
-    volpath, reference, difference in standard errors) into ``out_dir``, plus both
+    volpath, reference, difference in standard errors as ``binomial_z``) into ``out_dir``, plus both
     transmittance stacks as EXR (film layout [view * v, u]). ``extra`` is merged into the
     JSON (e.g. the run a scene was built from)."""
     from mi_grg.evaluation.plotting import crosscheck_figure
@@ -578,8 +592,7 @@ def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CON
         files.append(str(out / f"{name}.exr"))
         mi.Bitmap(np.ascontiguousarray(_film(stack))).write(files[-1])
     files.append(str(out / "crosscheck.png"))
-    se = np.sqrt(np.clip(ref * (1 - ref), 0, None) / spp)
-    crosscheck_figure(files[-1], mc, ref, se, result)
+    crosscheck_figure(files[-1], mc, ref, binomial_z(mc, ref, spp), result)
     result["files"] = files + [str(out / "crosscheck.json")]
     (out / "crosscheck.json").write_text(json.dumps(result, indent=2))
     return result

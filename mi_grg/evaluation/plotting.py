@@ -51,25 +51,24 @@ def slice_montage(path, pred: np.ndarray, gt: np.ndarray | None = None, title: s
     plt.close(fig)
 
 
-def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, se: np.ndarray, result: dict,
+def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, z: np.ndarray, result: dict,
                       z_range: float = 4.0) -> None:
     """Write the path-traced cross-check as a PNG: one row per view [view, v, u], columns
-    volpath transmittance, reference transmittance and (volpath - reference) / standard
-    error (clipped to +-``z_range``; where the standard error is 0 a difference shows as
+    volpath transmittance, reference transmittance (one grey scale from the darkest
+    pixel to 1) and ``z`` = (volpath - reference) / standard error per pixel (clipped to
     +-``z_range``). Titles carry the numbers of ``result["views"]`` and the verdict."""
     plt = _agg()
     n = mc.shape[0]
-    fig, axes = plt.subplots(n, 3, figsize=(10.5, 3.1 * n + 0.8), squeeze=False)
-    diff = mc - ref
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(se > 0, diff / np.where(se > 0, se, 1.0),
-                     np.sign(diff) * z_range)
+    fig, axes = plt.subplots(n, 3, figsize=(10.5, 2.9 * n + 0.9), squeeze=False,
+                             layout="constrained")
+    lo = float(min(np.min(ref), np.percentile(mc, 1)))
+    lo = min(lo, 0.9)     # a nearly transparent object still gets some contrast
     for k in range(n):
         v = result["views"][k]
         verdict = "PASS" if v["pass"] else "FAIL"
         ax = axes[k]
-        im0 = ax[0].imshow(mc[k], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-        ax[1].imshow(ref[k], cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        im0 = ax[0].imshow(mc[k], cmap="gray", vmin=lo, vmax=1, interpolation="nearest")
+        ax[1].imshow(ref[k], cmap="gray", vmin=lo, vmax=1, interpolation="nearest")
         im2 = ax[2].imshow(np.clip(z[k], -z_range, z_range), cmap="RdBu_r", vmin=-z_range,
                            vmax=z_range, interpolation="nearest")
         ax[0].set_title(f"view {k} ({v['angle_deg']:.1f} deg): volpath, {result['spp']} spp",
