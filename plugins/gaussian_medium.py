@@ -138,7 +138,8 @@ class GaussianMedium(mi.Medium):
     Extinction is spectrally flat, the albedo is 0 (``sigma_s = 0``), so ``volpath``
     computes transmittance only. ``get_majorant`` returns one global bound
     (``majorant_bound``, from local sums over the cells); ``intersect_aabb`` the union of the Gaussians' ellipsoid boxes.
-    Attach it as the ``interior`` of a shape with a ``null`` BSDF enclosing that box.
+    Give it as the ``<medium>`` of a ``ct_scanner`` (its rays start in it), or as the
+    ``interior`` of a shape with a ``null`` BSDF enclosing that box.
     Python attributes: ``majorant`` (float), ``bbox`` (mi.ScalarBoundingBox3f), ``n``.
     """
 

@@ -1,10 +1,22 @@
-"""Path-traced cross-check of the projector: Mitsuba's ``volpath`` vs exp(-projection).
+"""Path-traced cross-check: Mitsuba's ``volpath`` vs the exact transmittance exp(-projection).
 
 An X-ray projection is -log of the transmittance T = exp(-integral of sigma along the ray).
 Mitsuba's ``volpath`` estimates T without any line integral: delta tracking through a
-purely absorbing medium (albedo 0) lit by a ``constant`` emitter of radiance 1 (= I0),
-each sample is 1 (the path escaped) or 0 (absorbed), so the per-pixel estimate is a
-Bernoulli mean with standard error sqrt(T (1 - T) / spp). Two routes:
+purely absorbing medium (albedo 0, spectrally flat extinction) lit by a ``constant``
+emitter of radiance 1 (= I0), each sample is 1 (the path escaped) or 0 (absorbed), so the
+per-pixel estimate is a binomial mean with standard error sqrt(T (1 - T) / spp).
+
+Scene files (``render_scene``; ``mi-grg render SCENE``): the file is rendered as written
+and its object (the ct_scanner's ``<medium>``) decides the reference (``REFERENCES``):
+``ct_phantom`` -> the phantom's closed-form line integrals, ``gaussian_medium`` -> the
+projector, ``heterogeneous`` with a ``gridvolume`` -> the exact line integral of the grid's
+trilinear interpolant (``integrate_grid``). ``render_run`` (``mi-grg render --run``) writes
+such a scene for a finished gr / r2 run. Per view: RMS / max difference, the expected
+standard error, a z-score and pass/fail (``view_statistics``), crosscheck.json and
+crosscheck.png.
+
+``(Gaussians, Geometry)`` pairs (``render_crosscheck``, used by ``bench/speed_vs_error.py``)
+take two routes through scenes built here:
 
 * ``gaussian``: the medium is ``gaussian_medium`` (the Gaussians summed directly at every
   lookup, no voxelisation); reference: exp(-projection) of the closed-form projector
@@ -369,7 +381,7 @@ def load_render_scene(path):
         scan = load_scan(path)
     except ScanError as e:
         raise ScanError(f"{e}; {SCENE_HINT}") from None
-    kinds = " | ".join(f'<medium type="{k}">' for k in REFERENCES)
+    kinds = " | ".join(f'<medium type="{k}">' for k in REFERENCES) + " (with a gridvolume)"
     if not scan.object:
         raise _bad(path, f"the ct_scanner sensor holds no scanned object: put {kinds} "
                          "inside <sensor type=\"ct_scanner\"> (see scenes/*_volpath.xml)")
@@ -380,7 +392,7 @@ def load_render_scene(path):
     integrator = scan.integrator.get("type")
     if integrator != "volpath":
         raise _bad(path, f"{'no integrator' if integrator is None else f'integrator {integrator!r}'}"
-                         ": the cross-check renders with Mitsuba's path tracer; add "
+                         ": the cross-check needs Mitsuba's volumetric path tracer; put "
                          "<integrator type=\"volpath\"/> at the top level of the scene")
     emitters = [o for o in scan.other if o.get("type") == "constant"]
     extra = [o["type"] for o in scan.other if o.get("type") != "constant"]
