@@ -455,6 +455,11 @@ def _vec(values) -> str:
 def _prop(name, value, indent) -> str:
     if isinstance(value, dict):
         return _element(value, indent, name=name)
+    if hasattr(value, "matrix"):   # a Mitsuba transform (e.g. a gridvolume's to_world)
+        m = np.asarray(value.matrix, np.float64).reshape(-1)
+        pad = " " * indent
+        return (f"{pad}<transform name={quoteattr(name)}>\n{pad}    <matrix "
+                f"value={quoteattr(_vec(m))}/>\n{pad}</transform>\n")
     if isinstance(value, bool):
         tag, text = "boolean", "true" if value else "false"
     elif isinstance(value, (int, np.integer)):
@@ -465,7 +470,7 @@ def _prop(name, value, indent) -> str:
         tag, text = "string", value
     else:
         raise ScanError(f"cannot write property {name}={value!r} to XML (only booleans, "
-                        "integers, floats, strings and nested objects)")
+                        "integers, floats, strings, transforms and nested objects)")
     return f"{' ' * indent}<{tag} name={quoteattr(name)} value={quoteattr(text)}/>\n"
 
 

@@ -73,7 +73,10 @@ def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, z: np.ndarray, resu
                            vmax=z_range, interpolation="nearest")
         ax[0].set_title(f"view {k} ({v['angle_deg']:.1f} deg): volpath, {result['spp']} spp",
                         fontsize=9)
-        ax[1].set_title(f"reference T, {result['object']}", fontsize=9)
+        short = {"ct_phantom": "exp(-phantom line integral)", "gaussian_medium":
+                 "exp(-projector)", "heterogeneous": "exp(-grid line integral)"}
+        ax[1].set_title(f"reference T = {short.get(result['object'], result['object'])}",
+                        fontsize=9)
         ax[2].set_title(f"{verdict}: z = {v['z']:+.2f}, RMS diff {v['rms_difference']:.4f}\n"
                         f"(expected {v['expected_rms_standard_error']:.4f}), max "
                         f"{v['max_abs_difference']:.3f}", fontsize=9,
