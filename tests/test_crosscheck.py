@@ -403,3 +403,16 @@ def test_scene_and_run_are_exclusive(tmp_path, capsys):
     assert main(["render", str(SCENES / "shepp_cone_volpath.xml"), "--det", "8",
                  "--out", str(tmp_path)]) == 2
     assert "only apply with --run" in capsys.readouterr().err
+
+
+def test_render_run_takes_test_angles_from_the_data_set(tmp_path, rng):
+    from mi_grg.cli import main
+    from mi_grg.data.scene import load_scan
+    from mi_grg.data.simulate import default_test_angles
+    run, _, _ = fake_run(tmp_path, rng)
+    main(["simulate", "--phantom", "shepp", "--n", "8", "--det", "8", "--views", "2",
+          "--test-views", "3", "--no-noise", "--out", str(tmp_path / "data")])
+    res = render_run(run, 8, tmp_path / "check", views=2, det=8, data=tmp_path / "data")
+    assert res["angles_from"].startswith("data set")
+    np.testing.assert_allclose(load_scan(tmp_path / "check" / "scene.xml").geometry.angles,
+                               default_test_angles(3)[[0, 2]])
