@@ -377,6 +377,12 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     its own parameters (misspelled or unused ones are errors) exactly as ``mi.load_file``
     would; the geometry comes from the instantiated ``ct_scanner``.
     """
+    return load_scan_and_scene(path, overrides)[0]
+
+
+def load_scan_and_scene(path, overrides: dict | None = None) -> tuple:
+    """``(load_scan(path, overrides), the Mitsuba scene it instantiated)``: for callers
+    that render the file, so that its objects are built once."""
     import mitsuba as mi
     from mi_grg.variant import set_variant
     set_variant(mi.variant())  # our plugins, registered for the active variant
@@ -430,7 +436,7 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     sensor = scene.sensors()[0]
     scan.geometry, scan.test_angles, scan.noise = (sensor.geometry, sensor.test_angles,
                                                    sensor.noise)
-    return scan
+    return scan, scene
 
 
 def load_mitsuba_scene(path, **params):

@@ -375,10 +375,10 @@ def load_render_scene(path):
     for a scene without a ct_scanner sensor, without a scanned object, with an integrator
     other than ``volpath``, without a ``constant`` emitter (or with other objects), or with
     an object that is not a pure absorber of a supported kind (``REFERENCES``)."""
-    from mi_grg.data.scene import ScanError, load_mitsuba_scene, load_scan
+    from mi_grg.data.scene import ScanError, load_scan_and_scene
     path = Path(path)
     try:
-        scan = load_scan(path)
+        scan, scene = load_scan_and_scene(path)
     except ScanError as e:
         raise ScanError(f"{e}; {SCENE_HINT}") from None
     kinds = " | ".join(f'<medium type="{k}">' for k in REFERENCES) + " (with a gridvolume)"
@@ -410,11 +410,6 @@ def load_render_scene(path):
     if kind == "gaussian_medium" and "filename" not in scan.object:
         raise _bad(path, "<medium type=\"gaussian_medium\"> needs <string name=\"filename\"> "
                          "(a Gaussians .npz, e.g. a run's gaussians.npz)")
-    try:
-        scene = load_mitsuba_scene(path)
-    except RuntimeError as e:
-        from mi_grg.data.scene import _mitsuba_message
-        raise _bad(path, _mitsuba_message(e)) from None
     medium = scene.sensors()[0].get_medium()
     if medium.has_spectral_extinction():
         # volpath then weights each sample by transmittance / free-flight pdf, which is 0

@@ -86,7 +86,8 @@ def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, z: np.ndarray, resu
         fig.colorbar(im0, ax=ax[:2].tolist(), shrink=0.8, label="transmittance I/I0")
         fig.colorbar(im2, ax=ax[2], shrink=0.8, label="(volpath - ref) / SE")
     verdict = "PASS" if result["pass"] else "FAIL"
-    fig.suptitle(f"{verdict}: volpath vs {result['reference']}\n{Path(result['scene']).name}, "
+    what = f"run {result['run']}" if result.get("run") else Path(result["scene"]).name
+    fig.suptitle(f"{verdict}: volpath vs {result['reference']}\n{what}, "
                  f"{result['confidence']:.1%} confidence per view (|z| <= "
                  f"{result['z_critical']:.2f}, no improbable pixel)", fontsize=10,
                  color="black" if result["pass"] else "red")
