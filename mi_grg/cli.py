@@ -153,10 +153,34 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from mi_grg.evaluation.crosscheck import render_crosscheck
-    result = render_crosscheck(args.scene, spp=args.spp, out_dir=args.out, seed=args.seed)
-    print(json.dumps(result, indent=2, default=float))
-    return 0
+    """Path-traced cross-check of a scene file or of a finished gr / r2 run; exit 1 when a
+    view fails (crosscheck.json and crosscheck.png say where)."""
+    from mi_grg.evaluation import crosscheck as cc
+    if (args.scene is None) == (args.run is None):
+        raise ValueError("give a scene file (SCENE, e.g. scenes/shepp_cone_volpath.xml) or a "
+                         "finished gr / r2 run (--run OUT_DIR), not both or neither")
+    run_only = [f for f, v in (("--views", args.views), ("--det", args.det),
+                               ("--data", args.data)) if v is not None]
+    if args.scene is not None and run_only:
+        raise ValueError(f"{', '.join(run_only)} only apply with --run (a scene file states "
+                         "its own views and detector)")
+    if args.scene is not None:
+        res = cc.render_scene(args.scene, args.spp, args.out, seed=args.seed,
+                              confidence=args.confidence)
+    else:
+        res = cc.render_run(args.run, args.spp, args.out, views=args.views or 2,
+                            det=args.det or 32, data=args.data, seed=args.seed,
+                            confidence=args.confidence)
+    print(f"volpath ({res['spp']} spp) vs {res['reference']}, {res['confidence']:.1%} "
+          "confidence per view:")
+    for k, v in enumerate(res["views"]):
+        print(f"  view {k} ({v['angle_deg']:6.1f} deg): RMS diff {v['rms_difference']:.4f} "
+              f"(MC standard error {v['expected_rms_standard_error']:.4f}), max "
+              f"{v['max_abs_difference']:.4f}, z {v['z']:+.2f}  "
+              f"{'pass' if v['pass'] else 'FAIL'}")
+    print(f"{'PASS' if res['pass'] else 'FAIL'}  -> {Path(args.out) / 'crosscheck.png'}, "
+          "crosscheck.json")
+    return 0 if res["pass"] else 1
 
 
 def cmd_demo(args) -> int:
@@ -277,10 +301,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="r2 / gr: continue from OUT/checkpoint.npz (same options required)")
     r.set_defaults(func=cmd_reconstruct)
 
-    q = sub.add_parser("render", help="path-traced cross-check of a scene (volpath vs projector)")
-    q.add_argument("scene")
-    q.add_argument("--spp", type=int, default=256)
+    q = sub.add_parser("render", help="path-traced cross-check (Mitsuba volpath vs the exact "
+                       "transmittance) of a scene or of a finished gr / r2 run")
+    q.add_argument("scene", nargs="?", help="scene XML: ct_scanner with a ct_phantom, "
+                   "gaussian_medium or heterogeneous (gridvolume) medium, volpath, constant "
+                   "emitter (scenes/*_volpath.xml)")
+    q.add_argument("--run", metavar="OUT_DIR", help="instead of a scene: a finished gr / r2 "
+                   "run (its gaussians.npz and metrics.json)")
+    q.add_argument("--views", type=int, help="--run: test views to render (default 2)")
+    q.add_argument("--det", type=int, help="--run: detector rows (default 32; columns in "
+                   "proportion, physical size kept)")
+    q.add_argument("--data", help="--run: the run's data set, for its test angles (default: "
+                   "those metrics.json records)")
+    q.add_argument("--spp", type=int, default=256, help="samples per pixel (default 256)")
     q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--confidence", type=float, default=0.999,
+                   help="per-view confidence of pass/fail (default 0.999)")
     q.add_argument("--out", required=True)
     q.set_defaults(func=cmd_render)
 

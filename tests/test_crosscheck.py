@@ -1,6 +1,7 @@
 """Mitsuba volpath (Monte Carlo) vs exp(-projection), the gaussian_medium plugin and the
 exact line integrals of voxel grids used as the grid route's reference."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,7 +10,9 @@ import mi_grg
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.evaluation.crosscheck import compare, integrate_volume, render_crosscheck
+from mi_grg.evaluation.crosscheck import (binomial_z, compare, integrate_volume,
+                                          render_crosscheck, render_run, render_scene,
+                                          view_statistics)
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.geometry import Geometry
 
@@ -78,6 +81,38 @@ def test_gaussian_medium_majorant_is_a_safe_bound(medium, rng):
     assert med.majorant < 1.5 * peak   # and a useful one (few null collisions)
     m = med.get_majorant(dr.zeros(mi.MediumInteraction3f, 1))
     assert float(m[0][0]) == pytest.approx(med.majorant, rel=1e-6)
+
+
+@pytest.mark.parametrize("max_entries", [None, 2000])
+def test_gaussian_medium_cell_lists_sum_every_gaussian(tmp_path, rng, monkeypatch, max_entries):
+    """Many Gaussians of mixed sizes: the per-cell sums equal the float64 sum over all of
+    them (also when the grid is coarsened to fit MAX_CELL_ENTRIES), and the majorant from
+    local sums bounds the field (loosely where many small Gaussians overlap)."""
+    from mi_grg.plugins import gaussian_medium as gm
+    if max_entries is not None:
+        monkeypatch.setattr(gm, "MAX_CELL_ENTRIES", max_entries)
+    n = 400
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    params = {"pos": rng.uniform(-0.8, 0.8, (n, 3)),
+              "scales": np.exp(rng.uniform(np.log(0.02), np.log(0.3), (n, 3))), "q": q,
+              "rho": rng.uniform(0.05, 1.0, n)}
+    Gaussians.from_numpy(params["pos"], params["scales"], params["q"],
+                         params["rho"]).save_npz(tmp_path / "g.npz")
+    mi_grg.set_variant(mi.variant())
+    med = mi.load_dict({"type": "gaussian_medium", "filename": str(tmp_path / "g.npz"),
+                        "extent": 3.0})
+    x = np.concatenate([params["pos"][rng.integers(0, n, 3000)] + rng.normal(size=(3000, 3))
+                        * 0.2, rng.uniform(-1.5, 1.5, (1000, 3))])
+    ref = field64(params, x, 3.0)
+    got = np.asarray(med.sigma_t(mi.Point3f(*[mi.Float(x[:, k]) for k in range(3)])))
+    np.testing.assert_allclose(got, ref, rtol=2e-5, atol=1e-6 * ref.max())
+    entries = len(np.asarray(med._index))
+    assert med._res > 1 and (max_entries is None or entries <= max_entries)
+    peak = ref.max()      # the field's peak is about 3.0 (a 160^3 voxelisation)
+    assert peak <= med.majorant
+    if max_entries is None:  # local sums; one global Lipschitz bound gave ~143 here
+        assert med.majorant < 6 * peak
 
 
 def test_gaussian_medium_box(medium):
@@ -169,18 +204,215 @@ def test_a_biased_estimate_is_detected(rng):
     assert abs(compare(noisy * 0.99, t, 4096)["z_mean"]) > 10.0
 
 
-def test_scene_file_route(tmp_path, rng):
+def test_scene_file_of_gaussians_is_rendered_as_written(tmp_path, rng):
     from mi_grg.data.scene import Scan, write_scan_xml
     g, geo, _ = tiny_case(rng, n=2)
     g.save_npz(tmp_path / "blobs.npz")
     mi_grg.set_variant(mi.variant())
     xml = write_scan_xml(Scan(geometry=geo, object={"type": "gaussian_medium",
-                                                    "filename": "blobs.npz"}),
+                                                    "filename": "blobs.npz"},
+                              integrator={"type": "volpath"},
+                              other=[{"type": "constant", "radiance": 1.0}]),
                          tmp_path / "scan.xml")
-    res = render_crosscheck(xml, spp=16, out_dir=tmp_path / "out", routes=("gaussian",))
-    assert res["n_gaussians"] == 2 and res["projection_shape"] == [3, 16, 16]
-    assert abs(res["routes"]["gaussian"]["z_mean"]) < 5.0
-    bad = write_scan_xml(Scan(geometry=geo, object={"type": "ct_phantom", "phantom": "shepp"}),
-                         tmp_path / "phantom.xml")
-    with pytest.raises(ValueError, match="gaussian_medium"):
-        render_crosscheck(bad, spp=4, out_dir=tmp_path / "x")
+    res = render_crosscheck(xml, spp=16, out_dir=tmp_path / "out")
+    assert res["object"] == "gaussian_medium" and res["n_gaussians"] == 2
+    assert res["projection_shape"] == [3, 16, 16] and len(res["views"]) == 3
+    assert res["pass"], res["views"]
+
+
+# ---------------------------------------------------------------- scene files, per object kind
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+@pytest.mark.parametrize("name, kind", [("shepp_cone_volpath.xml", "ct_phantom"),
+                                        ("gaussians_cone_volpath.xml", "gaussian_medium"),
+                                        ("shepp_grid_volpath.xml", "heterogeneous")])
+def test_shipped_scene_of_each_object_kind_passes(tmp_path, name, kind):
+    """volpath (Mitsuba's own delta tracking) against the independent exact reference of
+    each kind; the statistics are those of a binomial count per pixel."""
+    res = render_scene(SCENES / name, 64, tmp_path, seed=5)
+    assert res["object"] == kind and res["pass"], res["views"]
+    for v in res["views"]:
+        assert 0.7 < v["z_rms"] < 1.3, v                  # errors are as large as predicted
+        assert 0.7 < v["rms_difference"] / v["expected_rms_standard_error"] < 1.3, v
+        assert v["pixels_informative"] > 100
+    saved = json.loads((tmp_path / "crosscheck.json").read_text())
+    assert saved["views"][0]["z"] == res["views"][0]["z"]
+    assert (tmp_path / "crosscheck.png").stat().st_size > 10000
+    n_views, nv, nu = res["projection_shape"]
+    ref = np.asarray(mi.Bitmap(str(tmp_path / "reference_T.exr")))
+    assert ref.shape[:2] == (n_views * nv, nu) and 0 < ref.min() < 0.95 and ref.max() <= 1
+
+
+def test_a_wrong_reference_fails_the_view(tmp_path, monkeypatch):
+    """The cross-check can fail: a 5 % error in the line integrals fails every view at
+    256 spp (3 % fails two of the four)."""
+    from mi_grg.evaluation import crosscheck as cc
+    true_reference = cc.scene_reference
+
+    def off(scan, scene):
+        t, info = true_reference(scan, scene)
+        return t ** 1.05, info
+    monkeypatch.setattr(cc, "scene_reference", off)
+    res = cc.render_scene(SCENES / "shepp_cone_volpath.xml", 256, tmp_path)
+    assert not res["pass"] and all(abs(v["z"]) > 4 and not v["pass"] for v in res["views"])
+    from mi_grg.cli import main
+    assert main(["render", str(SCENES / "shepp_cone_volpath.xml"), "--spp", "256",
+                 "--out", str(tmp_path / "cli")]) == 1
+
+
+def test_samples_must_be_zero_or_one():
+    from mi_grg.evaluation.crosscheck import _render_checked, load_render_scene
+    _, scene = load_render_scene(SCENES / "shepp_cone_volpath.xml")
+    t = _render_checked(scene, 2, 0, radiance=1.0)
+    assert set(np.unique(t * 2)) <= {0.0, 1.0, 2.0}
+    with pytest.raises(ValueError, match="not 0 or 1"):
+        _render_checked(scene, 1, 0, radiance=2.0)    # samples 0 or 0.5: not binomial
+
+
+def test_view_statistics_pass_bias_and_impossible_pixel(rng):
+    spp = 64
+    t = np.concatenate([rng.uniform(0.2, 0.95, (2, 16, 16)), np.ones((2, 4, 16))], 1)
+    mc = rng.binomial(spp, t) / spp
+    stats = view_statistics(mc, t, spp)
+    assert all(v["pass"] for v in stats)
+    assert stats[0]["pixels_informative"] == 256 and stats[0]["pixels"] == 320
+    biased = np.clip(np.rint(mc * spp) - 3, 0, None) / spp     # 3 samples fewer escape
+    biased[:, 16:] = 1.0
+    assert not any(v["pass"] for v in view_statistics(biased, t, spp))
+    one = mc.copy()
+    one[1, 18, 3] = 1 - 1 / spp           # an absorbed sample where T = 1 (ray misses)
+    s = view_statistics(one, t, spp)
+    assert s[0]["pass"] and not s[1]["pass"] and s[1]["min_pixel_p_value"] == 0.0
+
+
+def test_binomial_z_is_the_standard_score():
+    spp = 4096
+    t = np.array([0.3, 0.5, 0.8])
+    mc = t + np.array([-2, 1, 3]) * np.sqrt(t * (1 - t) / spp)
+    np.testing.assert_allclose(binomial_z(mc, t, spp), [-2, 1, 3], atol=0.05)
+    # one absorbed sample at T = 0.999, 256 spp: mid-p 0.13 -> z = -1.1, not -8
+    assert binomial_z(np.array([255 / 256]), np.array([0.999]), 256)[0] == pytest.approx(
+        -1.1, abs=0.1)
+    assert binomial_z(np.array([1.0]), np.array([1.0]), 16)[0] == 0.0
+
+
+# ---------------------------------------------------------------- a finished run
+def fake_run(tmp_path, rng, scale=0.5):
+    """A run folder as gr writes it: Gaussians in the rescaled frame, metrics.json with the
+    data set's geometry in file units (lengths / scale) and its test angles."""
+    g, geo, _ = tiny_case(rng)
+    run = tmp_path / "run"
+    run.mkdir()
+    g.save_npz(run / "gaussians.npz")
+    file_geo = geo.scaled(1 / scale)
+    test_angles = [0.1, 1.0, 2.0, 3.0, 4.0]
+    (run / "metrics.json").write_text(json.dumps({
+        "method": "gr", "geometry": {**file_geo.to_scanner_dict(), "n_angles": 3,
+                                     "n_test_angles": 5, "scene_scale": scale},
+        "data": {"scene": {"test_angles": test_angles}}}))
+    return run, geo, test_angles
+
+
+def test_render_run_builds_the_scene_from_the_run(tmp_path, rng):
+    from mi_grg.data.scene import load_scan
+    run, geo, test_angles = fake_run(tmp_path, rng)
+    res = render_run(run, 32, tmp_path / "check", views=3, det=12)
+    assert res["pass"], res["views"]
+    scan = load_scan(tmp_path / "check" / "scene.xml")
+    # the scanner is in the Gaussians' (rescaled) frame, at the asked detector size
+    assert scan.geometry.DSD == pytest.approx(geo.DSD) and scan.geometry.sVoxel == geo.sVoxel
+    assert scan.geometry.nDetector == (12, 12) and scan.geometry.sDetector == geo.sDetector
+    np.testing.assert_allclose(scan.geometry.angles, np.asarray(test_angles)[[0, 2, 4]])
+    assert res["projection_shape"] == [3, 12, 12] and res["run"] == str(run)
+    assert res["angles_from"].startswith("metrics.json")
+
+
+def test_cli_render_run(tmp_path, rng, capsys):
+    from mi_grg.cli import main
+    run, _, _ = fake_run(tmp_path, rng, scale=1.0)
+    assert main(["render", "--run", str(run), "--spp", "16", "--det", "8",
+                 "--out", str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "view 1" in out and "PASS" in out and (tmp_path / "c" / "crosscheck.png").is_file()
+
+
+# ---------------------------------------------------------------- bad input: one line, exit 2
+SENSOR = """<sensor type="ct_scanner">
+  <string name="mode" value="cone"/><float name="DSD" value="7"/><float name="DSO" value="5"/>
+  <string name="nDetector" value="8 8"/><string name="sDetector" value="4.2 4.2"/>
+  <string name="nVoxel" value="8 8 8"/><string name="sVoxel" value="2 2 2"/>
+  <integer name="views" value="1"/>{medium}</sensor>"""
+PHANTOM = '<medium type="ct_phantom"><string name="phantom" value="shepp"/></medium>'
+EMITTER = '<emitter type="constant"><float name="radiance" value="1"/></emitter>'
+GRID = """<medium type="heterogeneous">{albedo}
+  <volume type="gridvolume" name="sigma_t"><string name="filename" value="{vol}"/></volume>
+</medium>"""
+
+
+def _scene(tmp_path, body):
+    path = tmp_path / "bad.xml"
+    path.write_text(f'<scene version="3.0.0">{body}</scene>')
+    return path
+
+
+@pytest.mark.parametrize("body, words", [
+    ('<sensor type="perspective"/>' + EMITTER + '<integrator type="volpath"/>',
+     ["ct_scanner", "copy scenes/shepp_cone_volpath.xml"]),
+    (SENSOR.format(medium="") + EMITTER + '<integrator type="volpath"/>',
+     ["no scanned object", '<medium type="ct_phantom">']),
+    (SENSOR.format(medium=PHANTOM) + EMITTER + '<integrator type="path"/>',
+     ["integrator 'path'", '<integrator type="volpath"/>']),
+    (SENSOR.format(medium=PHANTOM) + EMITTER, ["no integrator", '<integrator type="volpath"/>']),
+    (SENSOR.format(medium=PHANTOM) + '<integrator type="volpath"/>',
+     ['<emitter type="constant">']),
+    (SENSOR.format(medium=GRID.format(albedo="", vol="{vol}")) + EMITTER +
+     '<integrator type="volpath"/>', ["pure absorber", 'name="albedo" value="0"']),
+    (SENSOR.format(medium=GRID.format(albedo='<float name="albedo" value="0"/>', vol="{vol}"))
+     + EMITTER + '<integrator type="volpath"/>', ["has_spectral_extinction"]),
+])
+def test_bad_scene_is_one_line_exit_2(tmp_path, capsys, body, words):
+    from mi_grg.cli import main
+    body = body.replace("{vol}", str(SCENES / "shepp_grid32.vol"))
+    assert main(["render", str(_scene(tmp_path, body)), "--spp", "4",
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("mi-grg render: error:"), err
+    for w in words:
+        assert w in err, (w, err)
+
+
+def test_run_without_gaussians_is_one_line_exit_2(tmp_path, rng, capsys):
+    from mi_grg.cli import main
+    run, _, _ = fake_run(tmp_path, rng)
+    (run / "gaussians.npz").unlink()
+    assert main(["render", "--run", str(run), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no gaussians.npz" in err
+    assert "mi-grg reconstruct DATA --method gr" in err and "--resume" not in err
+    (run / "checkpoint.npz").write_bytes(b"")          # an unfinished run
+    assert main(["render", "--run", str(run), "--out", str(tmp_path / "o")]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["render", "--run", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_scene_and_run_are_exclusive(tmp_path, capsys):
+    from mi_grg.cli import main
+    assert main(["render", "--out", str(tmp_path)]) == 2
+    assert main(["render", str(SCENES / "shepp_cone_volpath.xml"), "--det", "8",
+                 "--out", str(tmp_path)]) == 2
+    assert "only apply with --run" in capsys.readouterr().err
+
+
+def test_render_run_takes_test_angles_from_the_data_set(tmp_path, rng):
+    from mi_grg.cli import main
+    from mi_grg.data.scene import load_scan
+    from mi_grg.data.simulate import default_test_angles
+    run, _, _ = fake_run(tmp_path, rng)
+    main(["simulate", "--phantom", "shepp", "--n", "8", "--det", "8", "--views", "2",
+          "--test-views", "3", "--no-noise", "--out", str(tmp_path / "data")])
+    res = render_run(run, 8, tmp_path / "check", views=2, det=8, data=tmp_path / "data")
+    assert res["angles_from"].startswith("data set")
+    np.testing.assert_allclose(load_scan(tmp_path / "check" / "scene.xml").geometry.angles,
+                               default_test_angles(3)[[0, 2]])

@@ -377,6 +377,12 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     its own parameters (misspelled or unused ones are errors) exactly as ``mi.load_file``
     would; the geometry comes from the instantiated ``ct_scanner``.
     """
+    return load_scan_and_scene(path, overrides)[0]
+
+
+def load_scan_and_scene(path, overrides: dict | None = None) -> tuple:
+    """``(load_scan(path, overrides), the Mitsuba scene it instantiated)``: for callers
+    that render the file, so that its objects are built once."""
     import mitsuba as mi
     from mi_grg.variant import set_variant
     set_variant(mi.variant())  # our plugins, registered for the active variant
@@ -430,7 +436,7 @@ def load_scan(path, overrides: dict | None = None) -> Scan:
     sensor = scene.sensors()[0]
     scan.geometry, scan.test_angles, scan.noise = (sensor.geometry, sensor.test_angles,
                                                    sensor.noise)
-    return scan
+    return scan, scene
 
 
 def load_mitsuba_scene(path, **params):
@@ -455,6 +461,11 @@ def _vec(values) -> str:
 def _prop(name, value, indent) -> str:
     if isinstance(value, dict):
         return _element(value, indent, name=name)
+    if hasattr(value, "matrix"):   # a Mitsuba transform (e.g. a gridvolume's to_world)
+        m = np.asarray(value.matrix, np.float64).reshape(-1)
+        pad = " " * indent
+        return (f"{pad}<transform name={quoteattr(name)}>\n{pad}    <matrix "
+                f"value={quoteattr(_vec(m))}/>\n{pad}</transform>\n")
     if isinstance(value, bool):
         tag, text = "boolean", "true" if value else "false"
     elif isinstance(value, (int, np.integer)):
@@ -465,7 +476,7 @@ def _prop(name, value, indent) -> str:
         tag, text = "string", value
     else:
         raise ScanError(f"cannot write property {name}={value!r} to XML (only booleans, "
-                        "integers, floats, strings and nested objects)")
+                        "integers, floats, strings, transforms and nested objects)")
     return f"{' ' * indent}<{tag} name={quoteattr(name)} value={quoteattr(text)}/>\n"
 
 

@@ -1,10 +1,22 @@
-"""Path-traced cross-check of the projector: Mitsuba's ``volpath`` vs exp(-projection).
+"""Path-traced cross-check: Mitsuba's ``volpath`` vs the exact transmittance exp(-projection).
 
 An X-ray projection is -log of the transmittance T = exp(-integral of sigma along the ray).
 Mitsuba's ``volpath`` estimates T without any line integral: delta tracking through a
-purely absorbing medium (albedo 0) lit by a ``constant`` emitter of radiance 1 (= I0),
-each sample is 1 (the path escaped) or 0 (absorbed), so the per-pixel estimate is a
-Bernoulli mean with standard error sqrt(T (1 - T) / spp). Two routes:
+purely absorbing medium (albedo 0, spectrally flat extinction) lit by a ``constant``
+emitter of radiance 1 (= I0), each sample is 1 (the path escaped) or 0 (absorbed), so the
+per-pixel estimate is a binomial mean with standard error sqrt(T (1 - T) / spp).
+
+Scene files (``render_scene``; ``mi-grg render SCENE``): the file is rendered as written
+and its object (the ct_scanner's ``<medium>``) decides the reference (``REFERENCES``):
+``ct_phantom`` -> the phantom's closed-form line integrals, ``gaussian_medium`` -> the
+projector, ``heterogeneous`` with a ``gridvolume`` -> the exact line integral of the grid's
+trilinear interpolant (``integrate_grid``). ``render_run`` (``mi-grg render --run``) writes
+such a scene for a finished gr / r2 run. Per view: RMS / max difference, the expected
+standard error, a z-score and pass/fail (``view_statistics``), crosscheck.json and
+crosscheck.png.
+
+``(Gaussians, Geometry)`` pairs (``render_crosscheck``, used by ``bench/speed_vs_error.py``)
+take two routes through scenes built here:
 
 * ``gaussian``: the medium is ``gaussian_medium`` (the Gaussians summed directly at every
   lookup, no voxelisation); reference: exp(-projection) of the closed-form projector
@@ -26,6 +38,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -41,37 +54,43 @@ MAX_LANES = 1 << 24
 
 
 # ---------------------------------------------------------------- references
-def _padded_volume(volume: np.ndarray, geometry: Geometry):
-    """Edge-padded samples and the positions of the first/last ones ([x, y, z], length)."""
-    vol = np.pad(np.asarray(volume, np.float32), 1, mode="edge")
-    axes = geometry.voxel_axes()
-    d = np.asarray(geometry.dVoxel)
-    lo = np.array([a[0] for a in axes]) - d
-    hi = np.array([a[-1] for a in axes]) + d
-    return vol, lo, hi
-
-
 def integrate_volume(volume, geometry: Geometry, angles=None) -> np.ndarray:
-    """Line integrals [view, v, u] of a voxel volume [x, y, z] through every pixel centre.
+    """Line integrals [view, v, u] of a voxel volume [x, y, z] on ``geometry``'s voxel grid
+    through every pixel centre (``integrate_grid`` over the volume box)."""
+    shape = np.shape(volume)
+    if tuple(shape) != tuple(geometry.nVoxel):
+        raise ValueError(f"volume must have shape [x, y, z] = nVoxel = {geometry.nVoxel}, "
+                         f"got {shape}")
+    lo, hi = geometry.bbox()
+    return integrate_grid(volume, lo, hi, geometry, angles)
+
+
+def integrate_grid(volume, lo, hi, geometry: Geometry, angles=None) -> np.ndarray:
+    """Line integrals [view, v, u] of a voxel grid [x, y, z] filling the box [lo, hi]
+    (voxel centres at lo + (i + 1/2) (hi - lo) / n) through every pixel centre.
 
     The field is the trilinear interpolant of the voxel-centre samples, constant beyond
     the outermost centres (what Mitsuba's ``gridvolume`` does with its default clamp),
-    and zero outside the volume box. The integral over each ray's segment inside the box
-    is exact for that interpolant (``dr.dda.integrate``, float32). Units: density x length.
+    and zero outside the box. The integral over each ray's segment inside the box is
+    exact for that interpolant (``dr.dda.integrate``, float32). Units: density x length.
     """
     import drjit.dda as dda
     vol = np.asarray(volume, np.float32)
-    if vol.shape != tuple(geometry.nVoxel):
-        raise ValueError(f"volume must have shape [x, y, z] = nVoxel = {geometry.nVoxel}, "
-                         f"got {vol.shape}")
+    if vol.ndim != 3:
+        raise ValueError(f"volume must be 3-D [x, y, z], got shape {vol.shape}")
     if not np.all(np.isfinite(vol)):
         raise ValueError("volume contains NaN or Inf (expected finite densities)")
-    padded, glo, ghi = _padded_volume(vol, geometry)
+    blo, bhi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    if not np.all(bhi > blo):
+        raise ValueError(f"grid box must have hi > lo on every axis, got {blo} .. {bhi}")
+    # edge padding: one more sample beyond each face, so the clamp needs no special case
+    padded = np.pad(vol, 1, mode="edge")
+    half = 0.5 * (bhi - blo) / np.asarray(vol.shape)
+    glo, ghi = blo - half, bhi + half           # first/last padded sample positions
     o, d = geometry.pixel_rays_numpy(angles)
     shape = o.shape[:3]
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    # clip each ray to the volume box (slab method, float64)
-    blo, bhi = geometry.bbox()
+    # clip each ray to the box (slab method, float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
         t0 = (blo - o) * inv
@@ -229,35 +248,23 @@ def _write(out_dir: Path, name: str, stack: np.ndarray, signed: bool) -> list:
 
 
 # ---------------------------------------------------------------- entry point
-def _load(scene) -> tuple:
-    """(gaussians, geometry) from a pair or from a scene XML whose ``id="object"`` is a
-    ``gaussian_medium`` (its ``filename`` relative to the XML's folder)."""
-    if isinstance(scene, (tuple, list)) and len(scene) == 2:
-        gaussians, geometry = scene
-        if not isinstance(gaussians, Gaussians) or not isinstance(geometry, Geometry):
-            raise TypeError("render_crosscheck takes a scene path or (Gaussians, Geometry)")
-        return gaussians, geometry
-    from mi_grg.data.scene import load_scan
-    path = Path(scene)
-    scan = load_scan(path)  # resolves relative file names against the scene's folder
-    obj = scan.object
-    if obj.get("type") != "gaussian_medium" or "filename" not in obj:
-        raise ValueError(f"{path}: the render cross-check needs the scanned object "
-                         f"(id=\"object\") to be a <medium type=\"gaussian_medium\"> with a "
-                         f"'filename' (Gaussians .npz); found {obj.get('type')!r}")
-    npz = Path(obj["filename"])
-    if not npz.is_absolute():
-        npz = path.parent / npz
-    return Gaussians.load_npz(npz), scan.geometry
+def _pair(scene) -> tuple:
+    """(gaussians, geometry) of a ``(Gaussians, Geometry)`` pair."""
+    gaussians, geometry = scene
+    if not isinstance(gaussians, Gaussians) or not isinstance(geometry, Geometry):
+        raise TypeError("render_crosscheck takes a scene path or (Gaussians, Geometry)")
+    return gaussians, geometry
 
 
 def render_crosscheck(scene, spp: int, out_dir, seed: int = 0, extent=None,
                       routes=("gaussian", "grid")) -> dict:
     """Projector transmittance vs Mitsuba ``volpath`` Monte Carlo, per pixel.
 
+    A scene XML path goes to ``render_scene`` (the file rendered as written, any object
+    kind; ``extent`` and ``routes`` do not apply). For a ``(Gaussians, Geometry)`` pair:
+
     Args:
-        scene: a scene XML path (``ct_scanner`` sensor + ``gaussian_medium`` object) or a
-            ``(Gaussians, Geometry)`` pair.
+        scene: a ``(Gaussians, Geometry)`` pair (or a scene path, see above).
         spp: samples per pixel of each Monte Carlo route.
         out_dir: folder for EXR and PNG images (film layout [view * v, u]):
             ``projector_T`` = exp(-projection), ``mc_<route>``, ``diff_<route>``
@@ -271,13 +278,15 @@ def render_crosscheck(scene, spp: int, out_dir, seed: int = 0, extent=None,
         ``grid_vs_projector`` (the voxelisation error of the grid route's reference).
     """
     from mi_grg.core.voxelizer import DEFAULT_EXTENT, voxelize
+    if not (isinstance(scene, (tuple, list)) and len(scene) == 2):
+        return render_scene(scene, spp, out_dir, seed=seed)
     spp = int(spp)
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     unknown = set(routes) - {"gaussian", "grid"}
     if unknown:
         raise ValueError(f"routes must be among ('gaussian', 'grid'), got {sorted(unknown)}")
-    gaussians, geometry = _load(scene)
+    gaussians, geometry = _pair(scene)
     extent = DEFAULT_EXTENT if extent is None else float(extent)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -331,3 +340,338 @@ def _gaussian_box(medium, geometry: Geometry):
     lo, hi = geometry.bbox()
     return (np.minimum(lo, np.asarray(medium.bbox.min)),
             np.maximum(hi, np.asarray(medium.bbox.max)))
+
+
+# ---------------------------------------------------------------- a scene file, as written
+#: The scanned objects (the ``<medium>`` of the ct_scanner) the scene route can check, and
+#: what each is compared against.
+REFERENCES = {
+    "ct_phantom": "exp(-exact line integral of the phantom) (mi_grg.data.phantoms)",
+    "gaussian_medium": "exp(-projector) (mi_grg.core.projector, closed form)",
+    "heterogeneous": "exp(-exact line integral of the gridvolume's trilinear interpolant)",
+}
+#: How to make a scene this route accepts.
+SCENE_HINT = ("a render scene is a <sensor type=\"ct_scanner\"> with the scanned <medium> "
+              "inside it, <integrator type=\"volpath\"/> and <emitter type=\"constant\">; "
+              "copy scenes/shepp_cone_volpath.xml")
+#: Confidence of each view's pass/fail (two-sided; see ``view_statistics``).
+CONFIDENCE = 0.999
+#: What the standard errors assume, verified on every render (``_render_checked``).
+ESTIMATOR = ("volpath on a pure absorber (albedo 0, spectrally flat extinction) does delta "
+             "tracking: every sample is 1 (escaped to the emitter) or 0 (absorbed), so a "
+             "pixel is a binomial count: SE = sqrt(T (1 - T) / spp) with T the reference; "
+             "checked: every sample of a 1-spp pass is 0 or 1")
+
+
+def _bad(path, message):
+    from mi_grg.data.scene import ScanError
+    return ScanError(f"{path}: {message}")
+
+
+def load_render_scene(path):
+    """(scan, Mitsuba scene) of a cross-check scene file, checked.
+
+    Raises ``ScanError`` (a ValueError; one line naming what is missing and how to add it)
+    for a scene without a ct_scanner sensor, without a scanned object, with an integrator
+    other than ``volpath``, without a ``constant`` emitter (or with other objects), or with
+    an object that is not a pure absorber of a supported kind (``REFERENCES``)."""
+    from mi_grg.data.scene import ScanError, load_scan_and_scene
+    path = Path(path)
+    try:
+        scan, scene = load_scan_and_scene(path)
+    except ScanError as e:
+        raise ScanError(f"{e}; {SCENE_HINT}") from None
+    kinds = " | ".join(f'<medium type="{k}">' for k in REFERENCES) + " (with a gridvolume)"
+    if not scan.object:
+        raise _bad(path, f"the ct_scanner sensor holds no scanned object: put {kinds} "
+                         "inside <sensor type=\"ct_scanner\"> (see scenes/*_volpath.xml)")
+    kind = scan.object["type"]
+    if kind not in REFERENCES:
+        raise _bad(path, f"cannot cross-check a <medium type=\"{kind}\">: the object must be "
+                         f"one of {kinds} (see scenes/*_volpath.xml)")
+    integrator = scan.integrator.get("type")
+    if integrator != "volpath":
+        raise _bad(path, f"{'no integrator' if integrator is None else f'integrator {integrator!r}'}"
+                         ": the cross-check needs Mitsuba's volumetric path tracer; put "
+                         "<integrator type=\"volpath\"/> at the top level of the scene")
+    emitters = [o for o in scan.other if o.get("type") == "constant"]
+    extra = [o["type"] for o in scan.other if o.get("type") != "constant"]
+    if len(emitters) != 1 or extra:
+        raise _bad(path, "the cross-check needs exactly one <emitter type=\"constant\"> (the "
+                         "unattenuated beam) and nothing else at the top level; found "
+                         f"{[o['type'] for o in scan.other] or 'none'}. Add <emitter type="
+                         "\"constant\"><float name=\"radiance\" value=\"1\"/></emitter>")
+    radiance = emitters[0].get("radiance", 1.0)
+    if isinstance(radiance, bool) or not isinstance(radiance, (int, float)) or not radiance > 0:
+        raise _bad(path, f"the constant emitter's radiance must be one number > 0 (the "
+                         f"beam intensity I0), got {radiance!r}")
+    if kind == "heterogeneous":
+        _check_grid_object(path, scan.object)
+    if kind == "gaussian_medium" and "filename" not in scan.object:
+        raise _bad(path, "<medium type=\"gaussian_medium\"> needs <string name=\"filename\"> "
+                         "(a Gaussians .npz, e.g. a run's gaussians.npz)")
+    medium = scene.sensors()[0].get_medium()
+    if medium.has_spectral_extinction():
+        # volpath then weights each sample by transmittance / free-flight pdf, which is 0
+        # for a ray leaving the medium into a scene without shapes: every pixel renders 0
+        raise _bad(path, f"the <medium type=\"{kind}\"> has spectral extinction; add "
+                         "<boolean name=\"has_spectral_extinction\" value=\"false\"/> to it")
+    return scan, scene
+
+
+def _check_grid_object(path, obj) -> None:
+    """A ``heterogeneous`` medium that the grid reference describes exactly."""
+    albedo = obj.get("albedo", None)
+    if isinstance(albedo, dict) or albedo is None or float(albedo) != 0.0:
+        raise _bad(path, "the heterogeneous medium must be a pure absorber: add <float "
+                         f"name=\"albedo\" value=\"0\"/> (found {albedo!r}; Mitsuba's "
+                         "default is 0.75)")
+    sigma = obj.get("sigma_t")
+    if not isinstance(sigma, dict) or sigma.get("type") != "gridvolume":
+        raise _bad(path, "the heterogeneous medium's sigma_t must be a <volume "
+                         "type=\"gridvolume\" name=\"sigma_t\"> (a .vol file)")
+    allowed = {"type": None, "filename": None, "to_world": None, "raw": None,
+               "filter_type": "trilinear", "wrap_mode": "clamp", "use_grid_bbox": False}
+    for key, value in sigma.items():
+        if key not in allowed or (allowed[key] is not None and value != allowed[key]):
+            raise _bad(path, f"gridvolume {key}={value!r} is not supported by the exact "
+                             f"reference (trilinear, clamped, placed by to_world)")
+
+
+def _grid_box(to_world) -> tuple:
+    """(lo, hi) of the unit cube under ``to_world``, which must be a scale + translation."""
+    m = np.asarray(to_world.matrix, np.float64) if to_world is not None else np.eye(4)
+    lin = m[:3, :3]
+    if np.any(np.abs(lin - np.diag(np.diag(lin))) > 1e-6 * np.abs(lin).max()) or \
+            np.any(np.diag(lin) <= 0):
+        raise ValueError("gridvolume to_world must be a positive scale and a translation "
+                         f"(axis-aligned box), got matrix {m[:3].tolist()}")
+    lo = m[:3, 3]
+    return lo, lo + np.diag(lin)
+
+
+def scene_reference(scan, scene) -> tuple:
+    """(exact transmittance [view, v, u] float64, description) of a checked scene."""
+    import drjit as dr
+    obj, geo = scan.object, scan.geometry
+    kind = obj["type"]
+    medium = scene.sensors()[0].get_medium()
+    info = {"object": kind, "reference": REFERENCES[kind]}
+    if kind == "ct_phantom":
+        from mi_grg.data.phantoms import make_phantom
+        proj = make_phantom(obj["phantom"], seed=int(obj.get("seed", 0))).line_integrals(geo)
+        info["phantom"] = obj["phantom"]
+    elif kind == "gaussian_medium":
+        from mi_grg.core.voxelizer import DEFAULT_EXTENT
+        g = Gaussians.load_npz(medium.filename)     # as resolved by the plugin
+        extent = float(obj.get("extent", DEFAULT_EXTENT))
+        proj = float(obj.get("scale", 1.0)) * projection(g, geo, extent)
+        info.update(gaussians=medium.filename, n_gaussians=len(g), extent=extent)
+    else:
+        params = mi.traverse(medium)
+        data = np.asarray(params["sigma_t.data"], np.float32)   # [z, y, x, channels]
+        if data.ndim != 4 or data.shape[-1] != 1:
+            raise ValueError(f"gridvolume must hold one channel, got data shape {data.shape}")
+        vol = np.transpose(data[..., 0], (2, 1, 0))
+        if vol.min() < 0:
+            raise ValueError(f"gridvolume sigma_t must be >= 0, has minimum {vol.min()}")
+        lo, hi = _grid_box(obj["sigma_t"].get("to_world"))
+        proj = float(params["scale"]) * integrate_grid(vol, lo, hi, geo)
+        info.update(grid_shape=list(vol.shape), box=[lo.tolist(), hi.tolist()])
+    dr.eval()
+    return np.exp(-np.asarray(proj, np.float64)), info
+
+
+def _render_checked(scene, spp: int, seed: int, radiance: float) -> np.ndarray:
+    """volpath transmittance [view, v, u] (mean of ``spp`` samples, divided by the beam's
+    radiance). The first sample of every pixel is rendered alone and must be 0 or 1: the
+    binomial standard errors of ``view_statistics`` rest on it."""
+    sensor = scene.sensors()[0]
+    first = sensor.to_projections(mi.render(scene, spp=1, seed=seed * 100003 + 100002))
+    first = first.astype(np.float64) / radiance
+    if not np.all((first == 0) | (np.abs(first - 1) < 1e-6)):
+        bad = first[(first != 0) & (np.abs(first - 1) >= 1e-6)]
+        raise ValueError(f"volpath's samples are not 0 or 1 (e.g. {bad[:3].tolist()}): the "
+                         "object is not a pure absorber under delta tracking, so the binomial "
+                         "standard error does not apply")
+    if spp == 1:
+        return first
+    rest = render_transmittance(scene, spp - 1, seed) / radiance
+    return (first + rest * (spp - 1)) / spp
+
+
+def view_statistics(mc: np.ndarray, ref: np.ndarray, spp: int,
+                    confidence: float = CONFIDENCE) -> list:
+    """Per view: the transmittance error of ``mc`` [view, v, u] (the mean of ``spp`` 0/1
+    samples per pixel) against the exact ``ref``, and a pass/fail at ``confidence``.
+
+    A view passes when (a) its mean error, divided by its standard error (the binomial
+    sqrt(T (1 - T) / spp) per pixel, T = reference), is within the two-sided normal
+    quantile of ``confidence`` (a bias test), and (b) no pixel's count is improbable:
+    the smallest exact two-sided binomial p-value is >= (1 - confidence) / pixels
+    (Bonferroni; exact rather than normal because at small spp or T near 1 a single
+    absorbed sample is many normal sigmas). Pixels with T = 1 (rays that miss the object)
+    enter (b) only: any absorbed sample there fails the view."""
+    from scipy.stats import binom, norm
+    alpha = 1.0 - float(confidence)
+    z_crit = float(norm.ppf(1.0 - alpha / 2))
+    out = []
+    for k in range(mc.shape[0]):
+        m, t = np.asarray(mc[k], np.float64), np.clip(np.asarray(ref[k], np.float64), 0, 1)
+        err = m - t
+        var = t * (1 - t) / spp
+        used = var > 0
+        n_used = int(used.sum())
+        se_mean = math.sqrt(float(var[used].sum())) / n_used if n_used else 0.0
+        z = float(err[used].mean() / se_mean) if se_mean > 0 else 0.0
+        count = np.rint(m * spp)
+        p = np.minimum(1.0, 2 * np.minimum(binom.cdf(count, spp, t),
+                                           binom.sf(count - 1, spp, t)))
+        p_min = float(p.min())
+        out.append({
+            "rms_difference": float(np.sqrt(np.mean(err ** 2))),
+            "max_abs_difference": float(np.abs(err).max()),
+            "mean_difference": float(err.mean()),
+            # what the RMS difference should be at this spp if volpath and reference agree
+            "expected_rms_standard_error": float(np.sqrt(var.mean())),
+            "standard_error_of_mean_difference": se_mean,
+            "z": z,
+            "z_rms": float(np.sqrt(np.mean(err[used] ** 2 / var[used]))) if n_used else 0.0,
+            "min_pixel_p_value": p_min,
+            "pixels": int(m.size), "pixels_informative": n_used,
+            "pass": bool(abs(z) <= z_crit and p_min >= alpha / m.size)})
+    return out
+
+
+def binomial_z(mc: np.ndarray, ref: np.ndarray, spp: int) -> np.ndarray:
+    """Per pixel, (volpath - reference) / standard error as a binomial z-score: the normal
+    quantile of the mid-p value P(K < k) + P(K = k) / 2, K ~ Binomial(spp, T), k the
+    pixel's count. Where spp T (1 - T) is large this is (mc - T) / sqrt(T (1 - T) / spp);
+    where it is small (T near 0 or 1) it stays honest: one absorbed sample at T = 0.999
+    and 256 spp is z = -1.1, not the -8 of the normal formula. T = 1 with no absorbed
+    sample is 0; an impossible count (e.g. an absorbed sample at T = 1) is -inf / +inf."""
+    from scipy.stats import binom, norm
+    t = np.clip(np.asarray(ref, np.float64), 0, 1)
+    k = np.rint(np.asarray(mc, np.float64) * spp)
+    mid = binom.cdf(k - 1, spp, t) + 0.5 * binom.pmf(k, spp, t)
+    return norm.ppf(mid)
+
+
+def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CONFIDENCE,
+                 extra: dict | None = None) -> dict:
+    """Render a scene file as written with Mitsuba's ``volpath`` and compare each view's
+    transmittance with the exact one of its object (``REFERENCES``).
+
+    Writes ``crosscheck.json`` (the returned dict: per view RMS / max difference, the
+    expected Monte Carlo standard error, z, pass) and ``crosscheck.png`` (per view:
+    volpath, reference, difference in standard errors as ``binomial_z``) into ``out_dir``, plus both
+    transmittance stacks as EXR (film layout [view * v, u]). ``extra`` is merged into the
+    JSON (e.g. the run a scene was built from)."""
+    from mi_grg.evaluation.plotting import crosscheck_figure
+    spp = int(spp)
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    if not 0.5 < float(confidence) < 1.0:
+        raise ValueError(f"confidence must lie in (0.5, 1), got {confidence}")
+    t0 = time.perf_counter()
+    scan, scene = load_render_scene(path)
+    ref, info = scene_reference(scan, scene)
+    t_ref = time.perf_counter() - t0
+    radiance = float(next(o for o in scan.other if o["type"] == "constant").get("radiance", 1.0))
+    t0 = time.perf_counter()
+    mc = _render_checked(scene, spp, seed, radiance)
+    t_mc = time.perf_counter() - t0
+    views = view_statistics(mc, ref, spp, confidence)
+    angles = np.asarray(scan.geometry.angles, np.float64)
+    for v, a in zip(views, angles):
+        v["angle_deg"] = float(np.degrees(a))
+    from scipy.stats import norm
+    result = {"scene": str(path), **info, "spp": spp, "seed": seed,
+              "projection_shape": list(ref.shape), "estimator": ESTIMATOR,
+              "confidence": float(confidence),
+              "z_critical": float(norm.ppf(1 - (1 - confidence) / 2)),
+              "pass": all(v["pass"] for v in views), "views": views,
+              "reference_seconds": t_ref, "volpath_seconds": t_mc, **(extra or {})}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for name, stack in (("volpath_T", mc), ("reference_T", ref)):
+        files.append(str(out / f"{name}.exr"))
+        mi.Bitmap(np.ascontiguousarray(_film(stack))).write(files[-1])
+    files.append(str(out / "crosscheck.png"))
+    crosscheck_figure(files[-1], mc, ref, binomial_z(mc, ref, spp), result)
+    result["files"] = files + [str(out / "crosscheck.json")]
+    (out / "crosscheck.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+# ---------------------------------------------------------------- a finished gr / r2 run
+def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tuple:
+    """Write ``out_dir/scene.xml``: a volpath cross-check scene of a finished gr / r2 run.
+
+    The scanner is the run's (``metrics.json`` "geometry", in the rescaled units its
+    ``gaussians.npz`` lives in), with ``det`` detector rows (columns in proportion; the
+    detector's physical size is kept) and ``views`` of its test views spread evenly over
+    them. Test angles come from ``data`` (the data set directory) if given, else from
+    metrics.json (data sets that ``mi-grg simulate`` wrote record them), else evenly
+    spaced half a step off the circle's grid (stated in the returned info).
+    Returns (scene path, info dict). Raises FileNotFoundError / ValueError (one line,
+    naming what is missing and how to make it)."""
+    from mi_grg.data.scene import Scan, write_scan_xml
+    from mi_grg.data.simulate import default_test_angles
+    run = Path(run_dir)
+    how = (f"`mi-grg reconstruct DATA --method gr --out {run}` (or --method r2) writes it")
+    if not run.is_dir():
+        raise FileNotFoundError(f"run directory {run} does not exist; {how}")
+    npz = run / "gaussians.npz"
+    if not npz.is_file():
+        resume = (" (checkpoint.npz is there: finish the run with the same command and "
+                  "--resume)" if (run / "checkpoint.npz").is_file() else "")
+        raise FileNotFoundError(f"{run} has no gaussians.npz, so it is not a finished gr or "
+                                f"r2 run{resume}; {how}")
+    metrics_path = run / "metrics.json"
+    if not metrics_path.is_file():
+        raise FileNotFoundError(f"{run} has no metrics.json (the run's scanner geometry); {how}")
+    metrics = json.loads(metrics_path.read_text())
+    g = metrics.get("geometry")
+    if not isinstance(g, dict):
+        raise ValueError(f"{metrics_path} lacks 'geometry' (the scanner); {how}")
+    views, det = int(views), int(det)
+    if views < 1 or det < 1:
+        raise ValueError(f"--views and --det must be >= 1, got {views} and {det}")
+    if data is not None:
+        from mi_grg.data.dataset import load_case
+        angles, source = load_case(data, rescale=False).test_angles, f"data set {data}"
+    elif (metrics.get("data") or {}).get("scene", {}).get("test_angles"):
+        angles, source = metrics["data"]["scene"]["test_angles"], "metrics.json (data.scene)"
+    else:
+        angles = default_test_angles(max(int(g.get("n_test_angles") or 0), views))
+        source = ("evenly spaced (the run does not record its test angles; --data DIR "
+                  "takes the data set's)")
+    angles = np.asarray(angles, np.float64).reshape(-1)
+    if angles.size == 0:
+        raise ValueError(f"no test angles in {source}; pass --data DIR of a data set with "
+                         "test views")
+    pick = np.unique(np.round(np.linspace(0, angles.size - 1, min(views, angles.size))))
+    # the Gaussians live in the rescaled frame that training used (lengths x scene_scale)
+    geo = Geometry.from_scanner_dict(g, angles[pick.astype(int)]).scaled(
+        float(g.get("scene_scale", 1.0)))
+    nv, nu = geo.nDetector
+    geo = geo.replace(nDetector=(det, max(1, round(det * nu / nv))))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scan = Scan(geometry=geo, object={"type": "gaussian_medium",
+                                      "filename": os.path.relpath(npz.resolve(), out.resolve())},
+                integrator={"type": "volpath"},
+                other=[{"type": "constant", "radiance": 1.0}])
+    path = write_scan_xml(scan, out / "scene.xml")
+    info = {"run": str(run), "method": metrics.get("method"), "angles_from": source,
+            "test_view_indices": pick.astype(int).tolist()}
+    return path, info
+
+
+def render_run(run_dir, spp: int, out_dir, views: int = 2, det: int = 32, data=None,
+               seed: int = 0, confidence: float = CONFIDENCE) -> dict:
+    """``render_scene`` of the scene ``run_scene`` builds for a finished gr / r2 run."""
+    path, info = run_scene(run_dir, out_dir, views=views, det=det, data=data)
+    return render_scene(path, spp, out_dir, seed=seed, confidence=confidence, extra=info)

@@ -2,6 +2,8 @@
 training log (loss, PSNR, Gaussian count per iteration)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 #: Iterations averaged in the loss plot's smoothed curve.
@@ -87,5 +89,49 @@ def plot_log(path, log: list, kept_iteration: int | None = None) -> None:
     for a in ax:
         a.set_xlabel("iteration")
     fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def crosscheck_figure(path, mc: np.ndarray, ref: np.ndarray, z: np.ndarray, result: dict,
+                      z_range: float = 4.0) -> None:
+    """Write the path-traced cross-check as a PNG: one row per view [view, v, u], columns
+    volpath transmittance, reference transmittance (one grey scale from the darkest
+    pixel to 1) and ``z`` = (volpath - reference) / standard error per pixel (clipped to
+    +-``z_range``). Titles carry the numbers of ``result["views"]`` and the verdict."""
+    plt = _agg()
+    n = mc.shape[0]
+    fig, axes = plt.subplots(n, 3, figsize=(10.5, 2.9 * n + 0.9), squeeze=False,
+                             layout="constrained")
+    lo = float(min(np.min(ref), np.percentile(mc, 1)))
+    lo = min(lo, 0.9)     # a nearly transparent object still gets some contrast
+    for k in range(n):
+        v = result["views"][k]
+        verdict = "PASS" if v["pass"] else "FAIL"
+        ax = axes[k]
+        im0 = ax[0].imshow(mc[k], cmap="gray", vmin=lo, vmax=1, interpolation="nearest")
+        ax[1].imshow(ref[k], cmap="gray", vmin=lo, vmax=1, interpolation="nearest")
+        im2 = ax[2].imshow(np.clip(z[k], -z_range, z_range), cmap="RdBu_r", vmin=-z_range,
+                           vmax=z_range, interpolation="nearest")
+        ax[0].set_title(f"view {k} ({v['angle_deg']:.1f} deg): volpath, {result['spp']} spp",
+                        fontsize=9)
+        short = {"ct_phantom": "exp(-phantom line integral)", "gaussian_medium":
+                 "exp(-projector)", "heterogeneous": "exp(-grid line integral)"}
+        ax[1].set_title(f"reference T = {short.get(result['object'], result['object'])}",
+                        fontsize=9)
+        ax[2].set_title(f"{verdict}: z = {v['z']:+.2f}, RMS diff {v['rms_difference']:.4f}\n"
+                        f"(expected {v['expected_rms_standard_error']:.4f}), max "
+                        f"{v['max_abs_difference']:.3f}", fontsize=9,
+                        color="black" if v["pass"] else "red")
+        for a in ax:
+            a.set_xticks([]), a.set_yticks([])
+        fig.colorbar(im0, ax=ax[:2].tolist(), shrink=0.8, label="transmittance I/I0")
+        fig.colorbar(im2, ax=ax[2], shrink=0.8, label="(volpath - ref) / SE")
+    verdict = "PASS" if result["pass"] else "FAIL"
+    what = f"run {result['run']}" if result.get("run") else Path(result["scene"]).name
+    fig.suptitle(f"{verdict}: volpath vs {result['reference']}\n{what}, "
+                 f"{result['confidence']:.1%} confidence per view (|z| <= "
+                 f"{result['z_critical']:.2f}, no improbable pixel)", fontsize=10,
+                 color="black" if result["pass"] else "red")
     fig.savefig(path, dpi=90)
     plt.close(fig)
