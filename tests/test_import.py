@@ -346,3 +346,29 @@ def test_every_method_is_unit_independent(method, small_physical_case):
         except RuntimeError:
             differs = True
         assert differs
+
+
+def test_tiff_stack_with_scene_xml_and_angles_file(scan, tmp_path):
+    """Plain TIFF folder + scene XML (geometry, offsets) + irregular angles from a file."""
+    from mi_grg.data.scene import Scan, scan_to_xml
+    geo = true_geometry()
+    (tmp_path / "scan.xml").write_text(scan_to_xml(Scan(geometry=geo)))
+    folder = tmp_path / "tiffs"
+    write_frames(folder, "p", scan["raw"][:40])
+    flats = write_frames(tmp_path / "f", "flat", scan["flats"])
+    darks = write_frames(tmp_path / "d", "dark", scan["darks"])
+    # the scene's 60 angles do not fit 40 TIFFs: an error naming both
+    with pytest.raises(RawImportError, match="40 TIFFs"):
+        import_scan(folder, tmp_path / "bad", scene=tmp_path / "scan.xml", flats=flats,
+                    darks=darks)
+    degrees = np.degrees(geo.angles[:40])
+    (tmp_path / "angles.txt").write_text("\n".join(f"{a:.10f}" for a in degrees))
+    rec = import_scan(folder, tmp_path / "case", scene=tmp_path / "scan.xml", flats=flats,
+                      darks=darks, angles=tmp_path / "angles.txt", nVoxel=16)
+    case = load_case(tmp_path / "case", rescale=False)
+    np.testing.assert_allclose(case.geometry.angles, geo.angles[:40], atol=1e-9)
+    assert case.geometry.offDetector == pytest.approx(geo.offDetector)   # from the XML
+    assert case.geometry.DSD == DSD and case.geometry.dDetector == pytest.approx((PX, PX))
+    err = case.train - scan["p"][:40]
+    assert np.sqrt(np.mean(err ** 2)) <= 1.15 * np.sqrt(np.mean(noise_std(scan)[:40] ** 2))
+    assert rec["source"]["kind"] == "tiff+scene"

@@ -516,8 +516,8 @@ def select_views(n: int, n_train, n_test: int, seed: int) -> tuple:
 
 # ---------------------------------------------------------------- the command
 def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
-    """(raw counts [view, v, u] binned, base geometry (binned detector, offsets before the
-    centre of rotation), raw [v, u] frame size, unit)."""
+    """(raw counts [view, v, u] binned, geometry (binned detector, offsets before the
+    centre of rotation), raw [v, u] frame size, length unit)."""
     from mi_grg.data.scene import ScanError, load_scan
     b = opts["bin"]
     if opts.get("scene"):
@@ -529,9 +529,10 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
         paths = tiff_list(source)
         angles = read_angles(opts["angles"]) if opts.get("angles") else base.angles
         if len(paths) != angles.size:
-            raise RawImportError(f"{source}: {len(paths)} TIFFs but "
-                                 f"{'--angles ' + str(opts['angles']) if opts.get('angles') else opts['scene'] + ' angles'}"
-                                 f" has {angles.size} angles")
+            where = (f"--angles {opts['angles']}" if opts.get("angles")
+                     else f"{opts['scene']} (angles)")
+            raise RawImportError(f"{source}: {len(paths)} TIFFs but {where} has "
+                                 f"{angles.size} angles")
         unit = opts.get("unit") or "scene unit"
         record["source"] = {"kind": "tiff+scene", "scene": str(opts["scene"])}
     else:
@@ -544,7 +545,7 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
         record["source"] = {"kind": "fips", "text": str(source), "keys": known,
                             "unknown_keys": unknown}
         base = None
-        unit = "mm"
+        unit = opts.get("unit") or "mm"
     first = read_tiff(paths[0])
     raw = read_stack(paths, b, first.shape)
     record["source"]["projections"] = [str(paths[0]), str(paths[-1]), len(paths)]
@@ -565,7 +566,7 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
                        sDetector=((nv_raw // b) * b * dv, (nu_raw // b) * b * du),
                        offDetector=(base.offDetector[0] - rv / 2 * dv,
                                     base.offDetector[1] - ru / 2 * du), angles=angles)
-    return raw, geo, (nv_raw, nu_raw), unit, base
+    return raw, geo, (nv_raw, nu_raw), unit
 
 
 def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,
@@ -612,7 +613,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         geo_all, proj_all = case.geometry, case.train
         unit = unit or "mm"
     else:
-        raw, geo, raw_shape, unit, _ = _tiff_scan(source, opts, record)
+        raw, geo, raw_shape, unit = _tiff_scan(source, opts, record)
         b = int(bin)
         dark = flat = None
         if darks:
