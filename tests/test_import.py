@@ -372,3 +372,19 @@ def test_tiff_stack_with_scene_xml_and_angles_file(scan, tmp_path):
     err = case.train - scan["p"][:40]
     assert np.sqrt(np.mean(err ** 2)) <= 1.15 * np.sqrt(np.mean(noise_std(scan)[:40] ** 2))
     assert rec["source"]["kind"] == "tiff+scene"
+
+
+def test_unit_scale_is_idempotent_and_skips_normalised(small_physical_case):
+    import dataclasses
+
+    from mi_grg.data.units import data_range, scaled_case, unit_scale
+    c = small_physical_case
+    s = unit_scale(c)
+    assert 0.5 < s < 2   # the FDK's robust maximum of a [0, 1] phantom
+    scaled = scaled_case(c, s)
+    assert unit_scale(scaled) == 1.0 and scaled_case(scaled, 1.0) is scaled
+    np.testing.assert_allclose(scaled.train * s, c.train, rtol=1e-6)
+    normalised = dataclasses.replace(c, info={})          # simulated data: no units block
+    assert unit_scale(normalised) == 1.0
+    assert data_range(normalised, c.vol_gt)[0] == 1.0
+    assert data_range(c, 3 * c.vol_gt)[0] == pytest.approx(3 * c.vol_gt.max())

@@ -74,13 +74,17 @@ def unit_scale(case) -> float:
 
 
 def scaled_case(case, s: float):
-    """A copy of ``case`` with projections and ground truth divided by ``s`` (densities in
-    units of ``s``); ``case`` itself is not changed."""
+    """A copy of ``case`` with projections and ground truth divided by ``s``: densities in
+    units of ``s``, of order 1, so the copy counts as normalised (scaling it again is a
+    no-op). ``case`` itself is not changed."""
     if s == 1.0:
         return case
     inv = np.float32(1.0 / s)
+    units = units_of(case)
     return dataclasses.replace(
         case, train=case.train * inv,
         test=None if case.test is None else case.test * inv,
         vol_gt=None if case.vol_gt is None else case.vol_gt * inv,
-        info={**case.info, "unit_scale": float(s)})
+        info={**case.info, "unit_scale": float(s),
+              "units": {**units, "normalised": True,
+                        "density": f"{float(s):.6g} {units.get('density', '')}".strip()}})
