@@ -211,17 +211,25 @@ def test_naf_pickle(tmp_path):
             "nVoxel": [16, 16, 16], "dVoxel": [SIDE / 16] * 3, "offOrigin": [0, 0, 0],
             "offDetector": [0.0, SHIFT_PX * PX], "totalAngle": 360.0, "startAngle": 0.0,
             "accuracy": 0.5, "mode": "cone", "numTrain": 20, "numVal": 10,
-            "train": {"projections": K * ph.line_integrals(geo, tr), "angles": tr},
-            "val": {"projections": K * ph.line_integrals(geo, va), "angles": va},
+            # NAF's generator: lengths in mm, projections computed in metres
+            "train": {"projections": K * 1e-3 * ph.line_integrals(geo, tr), "angles": tr},
+            "val": {"projections": K * 1e-3 * ph.line_integrals(geo, va), "angles": va},
             "image": K * ph.voxelize(geo)}
     path = tmp_path / "scan.pickle"
     path.write_bytes(pickle.dumps(data))
-    import_scan(path, tmp_path / "case")
+    rec = import_scan(path, tmp_path / "case")
     case = load_case(tmp_path / "case", rescale=False)
+    assert case.info["units"]["length"] == "m" and rec["source"]["kind"] == "naf-pickle"
     np.testing.assert_allclose(case.train, data["train"]["projections"], rtol=1e-6)
     np.testing.assert_allclose(case.test_angles, va)
-    assert case.geometry.offDetector == pytest.approx((0.0, SHIFT_PX * PX))
+    assert case.geometry.DSD == pytest.approx(DSD * 1e-3)
+    assert case.geometry.offDetector == pytest.approx((0.0, SHIFT_PX * PX * 1e-3))
     np.testing.assert_allclose(case.vol_gt, data["image"], rtol=1e-6)
+    # projections, geometry and image agree: the FDK lands on the image's scale
+    rec_vol = fdk(np.concatenate([case.train, case.test]), case.geometry.with_angles(
+        np.concatenate([tr, va])))
+    inside = data["image"] > 0.5 * data["image"].max()
+    assert np.median(rec_vol[inside] / data["image"][inside]) == pytest.approx(1.0, abs=0.15)
 
     class Evil:
         def __reduce__(self):

@@ -250,10 +250,17 @@ def load_naf(path) -> dict:
     return data
 
 
+#: NAF pickles state lengths in mm but their projections were computed in metres (NAF's
+#: generator divides by 1000 before calling TIGRE); R2-Gaussian's reader (readNAFInfo)
+#: divides the lengths by 1000 too, and so do we: lengths in m, densities in 1/m.
+NAF_LENGTH_SCALE = 1e-3
+
+
 def naf_case(data: dict, path) -> tuple:
-    """(Case in file units, notes) from a loaded NAF pickle: TIGRE conventions (those of
-    R2-Gaussian's layout: nDetector [v, u], projections [view, v, u] line integrals, angles
-    in radians, image [x, y, z]); "val" becomes the test split."""
+    """(Case, notes) from a loaded NAF pickle, read as R2-Gaussian's ``readNAFInfo`` reads
+    it: fields in its layout's order (nDetector [v, u], projections [view, v, u] line
+    integrals, angles in radians, image [x, y, z]), lengths x ``NAF_LENGTH_SCALE`` (m);
+    "val" becomes the test split."""
     name = Path(path).name
 
     def field(key, where=data, label=None):
@@ -298,8 +305,8 @@ def naf_case(data: dict, path) -> tuple:
                        nDetector=nDet, sDetector=nDet * dDet, nVoxel=nVox, sVoxel=nVox * dVox,
                        offOrigin=data.get("offOrigin", (0, 0, 0)),
                        offDetector=data.get("offDetector", (0, 0)),
-                       angles=splits["train"][1])
-    except GeometryError as e:
+                       angles=splits["train"][1]).scaled(NAF_LENGTH_SCALE)
+    except (GeometryError, TypeError, ValueError) as e:
         raise RawImportError(f"{name}: {e}") from e
     vol = data.get("image")
     if vol is not None:
@@ -611,7 +618,8 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
                             "loader": "restricted unpickler (dicts, lists, numbers, strings, "
                                       "numpy arrays)"}
         geo_all, proj_all = case.geometry, case.train
-        unit = unit or "mm"
+        unit = unit or "m"
+        record["source"]["length_scale"] = f"{NAF_LENGTH_SCALE} (the pickle's mm -> m)"
     else:
         raw, geo, raw_shape, unit = _tiff_scan(source, opts, record)
         b = int(bin)
