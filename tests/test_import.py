@@ -230,6 +230,10 @@ def test_naf_pickle(tmp_path):
         np.concatenate([tr, va])))
     inside = data["image"] > 0.5 * data["image"].max()
     assert np.median(rec_vol[inside] / data["image"][inside]) == pytest.approx(1.0, abs=0.15)
+    import_scan(path, tmp_path / "case_fdk", reference="fdk-all")
+    ref = load_case(tmp_path / "case_fdk", rescale=False)
+    np.testing.assert_allclose(ref.vol_gt, rec_vol, atol=1e-4 * np.abs(rec_vol).max())
+    assert "FDK of all 30" in ref.info["reference"]
 
     class Evil:
         def __reduce__(self):

@@ -673,12 +673,12 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         geo_all = geo.replace(offDetector=(geo.offDetector[0], off))
 
     # views
-    if is_pickle:
-        n_vox = None
+    if is_pickle:   # its own split; "all projections" = train + val
         case_geo = geo_all
         test_angles, test = case.test_angles, case.test
         train_idx = np.arange(geo_all.n_views)
-        vol_geo = geo_all
+        vol_geo = geo_all.with_angles(np.concatenate([geo_all.angles, test_angles]))
+        proj_all = np.concatenate([case.train, test])
     else:
         a = geo_all.angles
         span = np.abs(a - a[0]) >= 2 * np.pi - 1e-6
