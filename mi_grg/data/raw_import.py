@@ -546,7 +546,9 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
             raise RawImportError(f"{source}: {len(paths)} TIFFs but {where} has "
                                  f"{angles.size} angles")
         unit = opts.get("unit") or "scene unit"
-        record["source"] = {"kind": "tiff+scene", "scene": str(opts["scene"])}
+        record["source"] = {"kind": "tiff+scene", "scene": str(opts["scene"]),
+                            "not_used": {"test_angles": len(scan.test_angles),
+                                         "noise": scan.noise, "object": scan.object}}
     else:
         if opts.get("angles"):
             raise RawImportError("--angles needs --scene (a FIPS text file states its angles)")
@@ -584,7 +586,7 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
 def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,
                 bin=1, train_views=None, test_views=0, seed=0, reference=None,
                 nVoxel=None, sVoxel=None, scene=None, angles=None, angle_sign=1,
-                unit=None, check=False, overwrite=False, progress=True) -> dict:
+                unit=None, check=False, overwrite=False) -> dict:
     """``mi-grg import``: see the module docstring and docs/real_data.md. Returns the
     import record (also written as OUT/import.json)."""
     from mi_grg.data.dataset import _json_default, save_case
@@ -706,7 +708,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         record["volume"] = {"nVoxel": list(vol_geo.nVoxel), "sVoxel": list(vol_geo.sVoxel),
                             "rule": "given --sVoxel cube" if sVoxel else
                             "largest cylinder every view sees"}
-    vol_gt = case.vol_gt if is_pickle else None
+    vol_gt = case.vol_gt if is_pickle and reference != "none" else None
     info = {"source": "mi_grg.data.raw_import", "import": IMPORT_JSON,
             "units": {"length": unit, "density": f"1/{unit}", "normalised": False}}
     if reference == "fdk-all":
