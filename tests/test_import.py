@@ -16,8 +16,10 @@ from mi_grg.classical.fdk import fdk
 from mi_grg.core.geometry import Geometry, circular_angles
 from mi_grg.data.dataset import load_case
 from mi_grg.data.phantoms import make_phantom
-from mi_grg.data.raw_import import (RawImportError, estimate_cor, import_scan, load_naf,
-                                    normalise)
+from mi_grg.data.cor import estimate_cor
+from mi_grg.data.dataset import DatasetError
+from mi_grg.data.naf import load_naf
+from mi_grg.data.raw_import import import_scan, normalise
 from mi_grg.evaluation.metrics import psnr_3d
 
 NV = NU = 48
@@ -241,11 +243,11 @@ def test_naf_pickle(tmp_path):
             return (print, ("owned",))
     bad = tmp_path / "evil.pickle"
     bad.write_bytes(pickle.dumps({**data, "x": Evil()}))
-    with pytest.raises(RawImportError, match="refuses the type builtins.print"):
+    with pytest.raises(DatasetError, match="refuses the type builtins.print"):
         load_naf(bad)
     objs = tmp_path / "objs.pickle"
     objs.write_bytes(pickle.dumps({**data, "x": np.array([{}], dtype=object)}))
-    with pytest.raises(RawImportError):
+    with pytest.raises(DatasetError):
         load_naf(objs)
 
 
@@ -371,7 +373,7 @@ def test_tiff_stack_with_scene_xml_and_angles_file(scan, tmp_path):
     flats = write_frames(tmp_path / "f", "flat", scan["flats"])
     darks = write_frames(tmp_path / "d", "dark", scan["darks"])
     # the scene's 60 angles do not fit 40 TIFFs: an error naming both
-    with pytest.raises(RawImportError, match="40 TIFFs"):
+    with pytest.raises(DatasetError, match="40 TIFFs"):
         import_scan(folder, tmp_path / "bad", scene=tmp_path / "scan.xml", flats=flats,
                     darks=darks)
     degrees = np.degrees(geo.angles[:40])

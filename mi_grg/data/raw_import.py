@@ -11,9 +11,11 @@ Pipeline (``import_scan``; drawn in docs/real_data.md)::
       -> views: training / test split; optional FDK-of-all-views reference volume
       -> case directory (save_case), import.json with every choice, check.png
 
-Lengths stay in the scan's unit (mm for FIPS and NAF), densities are then in 1/mm; the case
-says so in ``info["units"]`` (see ``mi_grg.data.units``). Output is written to a temporary
-directory next to ``--out`` and renamed at the end, so a failure leaves nothing half-written.
+Lengths stay in the scan's unit (mm for FIPS; m for NAF pickles, see ``mi_grg.data.naf``),
+densities are then in 1/mm (1/m); the case says so in ``info["units"]`` (see
+``mi_grg.data.units``). The centre of rotation estimate is ``mi_grg.data.cor``. Output is
+written to a temporary directory next to ``--out`` and renamed at the end, so a failure
+leaves nothing half-written.
 """
 from __future__ import annotations
 
@@ -21,7 +23,6 @@ import glob as _glob
 import json
 import math
 import os
-import pickle
 import re
 import shutil
 import sys
@@ -31,7 +32,9 @@ import numpy as np
 
 from mi_grg.core.geometry import Geometry, GeometryError
 from mi_grg.data.case import Case
+from mi_grg.data.cor import estimate_cor
 from mi_grg.data.dataset import DatasetError
+from mi_grg.data.naf import NAF_LENGTH_SCALE, load_naf, naf_case
 
 IMPORT_JSON = "import.json"
 CHECK_PNG = "check.png"
@@ -47,30 +50,26 @@ FREE_RAY_SIGMAS = 8.0
 MAX_DEFAULT_VOXELS = 256
 
 
-class RawImportError(DatasetError):
-    """Bad raw input; the message names the file and the field."""
-
-
 # ---------------------------------------------------------------- reading
 def read_tiff(path) -> np.ndarray:
     """One TIFF frame [v, u] as float64 (uint8, uint16 or float32 pixels)."""
     import tifffile
     path = Path(path)
     if not path.is_file():
-        raise RawImportError(f"{path}: TIFF file not found")
+        raise DatasetError(f"{path}: TIFF file not found")
     try:
         img = tifffile.imread(str(path))
     except Exception as e:   # tifffile raises several types on corrupt files
-        raise RawImportError(f"{path}: cannot read as TIFF ({type(e).__name__}: {e})") from e
+        raise DatasetError(f"{path}: cannot read as TIFF ({type(e).__name__}: {e})") from e
     img = np.squeeze(img)
     if img.dtype not in TIFF_DTYPES:
-        raise RawImportError(f"{path}: pixel type {img.dtype}; expected uint8, uint16 or "
+        raise DatasetError(f"{path}: pixel type {img.dtype}; expected uint8, uint16 or "
                              "float32")
     if img.ndim != 2:
-        raise RawImportError(f"{path}: expected one 2-D frame [v, u], got shape {img.shape}")
+        raise DatasetError(f"{path}: expected one 2-D frame [v, u], got shape {img.shape}")
     img = img.astype(np.float64)
     if not np.all(np.isfinite(img)):
-        raise RawImportError(f"{path}: pixels contain NaN/Inf")
+        raise DatasetError(f"{path}: pixels contain NaN/Inf")
     return img
 
 
@@ -95,7 +94,7 @@ def read_stack(paths, b: int = 1, shape=None, what: str = "projection") -> np.nd
         if shape is None:
             shape = img.shape
         if img.shape != tuple(shape):
-            raise RawImportError(f"{p}: frame size [v, u] = {list(img.shape)} differs from "
+            raise DatasetError(f"{p}: frame size [v, u] = {list(img.shape)} differs from "
                                  f"{list(shape)} (the first {what})")
         img = bin_frame(img, b)
         if out is None:
@@ -108,7 +107,7 @@ def mean_frame(pattern: str, b: int, shape, what: str) -> tuple:
     """Mean of the frames matching ``pattern`` (binned), and the sorted file list."""
     paths = sorted(_glob.glob(pattern))
     if not paths:
-        raise RawImportError(f"--{what}s {pattern}: no file matches")
+        raise DatasetError(f"--{what}s {pattern}: no file matches")
     return read_stack(paths, b, shape, what).mean(axis=0), paths
 
 
@@ -119,7 +118,7 @@ def parse_fips(path) -> tuple:
     try:
         text = path.read_text(errors="strict")
     except (OSError, UnicodeDecodeError) as e:
-        raise RawImportError(f"{path}: cannot read the scan description ({e})") from e
+        raise DatasetError(f"{path}: cannot read the scan description ({e})") from e
     values = {}
     for line in text.splitlines():
         line = line.strip()
@@ -129,26 +128,26 @@ def parse_fips(path) -> tuple:
         values[key] = value
     missing = [k for k in FIPS_REQUIRED if k not in values]
     if missing:
-        raise RawImportError(f"{path}: lacks required key(s) {', '.join(missing)} "
+        raise DatasetError(f"{path}: lacks required key(s) {', '.join(missing)} "
                              f"(\"Key = value\" lines; needs {', '.join(FIPS_REQUIRED)})")
     known = {}
     for k in FIPS_REQUIRED:
         try:
             known[k] = float(values[k].split()[0])
         except (ValueError, IndexError):
-            raise RawImportError(f"{path}: {k} = {values[k]!r} is not a number") from None
+            raise DatasetError(f"{path}: {k} = {values[k]!r} is not a number") from None
         if not math.isfinite(known[k]):
-            raise RawImportError(f"{path}: {k} = {values[k]!r} is not finite")
+            raise DatasetError(f"{path}: {k} = {values[k]!r} is not finite")
     for k in ("DistanceSourceDetector", "DistanceSourceOrigin", "PixelSize", "NumberImages"):
         if known[k] <= 0:
-            raise RawImportError(f"{path}: {k} must be > 0, got {values[k]!r}")
+            raise DatasetError(f"{path}: {k} must be > 0, got {values[k]!r}")
     if known["NumberImages"] != round(known["NumberImages"]):
-        raise RawImportError(f"{path}: NumberImages must be an integer, got "
+        raise DatasetError(f"{path}: NumberImages must be an integer, got "
                              f"{values['NumberImages']!r}")
     n, first, step = int(known["NumberImages"]), known["AngleFirst"], known["AngleInterval"]
     last = first + (n - 1) * step
     if abs(last - known["AngleLast"]) > 0.5 * abs(step) + 1e-9:
-        raise RawImportError(f"{path}: AngleLast = {known['AngleLast']} disagrees with "
+        raise DatasetError(f"{path}: AngleLast = {known['AngleLast']} disagrees with "
                              f"AngleFirst + (NumberImages - 1) x AngleInterval = {last}")
     return known, {k: v for k, v in values.items() if k not in FIPS_REQUIRED}
 
@@ -166,13 +165,13 @@ def fips_images(txt: Path, n: int) -> list:
     elif len(groups) == 1:
         paths = next(iter(groups.values()))
     elif not groups:
-        raise RawImportError(f"{txt.parent}: no projections <name>_0001.tif ... beside {txt}")
+        raise DatasetError(f"{txt.parent}: no projections <name>_0001.tif ... beside {txt}")
     else:
-        raise RawImportError(f"{txt.parent}: several numbered TIFF series "
+        raise DatasetError(f"{txt.parent}: several numbered TIFF series "
                              f"({', '.join(sorted(groups))}) and none named {txt.stem}_NNNN.tif")
     paths.sort(key=lambda p: int(re.search(r"_(\d+)\.tiff?$", p.name, re.I).group(1)))
     if len(paths) != n:
-        raise RawImportError(f"{txt}: NumberImages = {n} but {len(paths)} projection TIFFs "
+        raise DatasetError(f"{txt}: NumberImages = {n} but {len(paths)} projection TIFFs "
                              f"{paths[0].name} ... {paths[-1].name} were found")
     return paths
 
@@ -184,7 +183,7 @@ def tiff_list(source: Path) -> list:
     else:
         paths = sorted(Path(p) for p in _glob.glob(str(source)))
     if not paths:
-        raise RawImportError(f"{source}: no TIFF projections found")
+        raise DatasetError(f"{source}: no TIFF projections found")
     return paths
 
 
@@ -193,149 +192,11 @@ def read_angles(path) -> np.ndarray:
     try:
         a = np.loadtxt(path, dtype=np.float64, ndmin=1)
     except (OSError, ValueError) as e:
-        raise RawImportError(f"--angles {path}: cannot read one angle (degrees) per line "
+        raise DatasetError(f"--angles {path}: cannot read one angle (degrees) per line "
                              f"({e})") from e
     if a.ndim != 1 or not np.all(np.isfinite(a)):
-        raise RawImportError(f"--angles {path}: expected one finite angle (degrees) per line")
+        raise DatasetError(f"--angles {path}: expected one finite angle (degrees) per line")
     return np.deg2rad(a)
-
-
-# ---------------------------------------------------------------- NAF / SAX-NeRF pickles
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Accepts only what a NAF pickle holds: dicts, lists, tuples, numbers, strings,
-    None and numpy arrays / scalars. Any other class (which could run code) is refused."""
-
-    ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray",
-               "_reconstruct"), ("numpy", "ndarray"), ("numpy", "dtype"),
-               ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-               ("builtins", "complex")}
-
-    def find_class(self, module, name):
-        if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refuses the type {module}.{name}")
-
-
-def _plain(obj, where):
-    """Check that ``obj`` holds only the allowed types (numpy object arrays are not)."""
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            if not isinstance(k, str):
-                raise RawImportError(f"{where}: key {k!r} is not a string")
-            _plain(v, f"{where}.{k}")
-    elif isinstance(obj, (list, tuple)):
-        for i, v in enumerate(obj):
-            _plain(v, f"{where}[{i}]")
-    elif isinstance(obj, np.ndarray):
-        if obj.dtype.kind not in "biuf":
-            raise RawImportError(f"{where}: array of dtype {obj.dtype}; expected numbers")
-    elif not (obj is None or isinstance(obj, (bool, int, float, str, np.generic))):
-        raise RawImportError(f"{where}: unexpected type {type(obj).__name__}")
-
-
-def load_naf(path) -> dict:
-    """A NAF / SAX-NeRF pickle, loaded with ``_RestrictedUnpickler`` and type-checked."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            data = _RestrictedUnpickler(f).load()
-    except pickle.UnpicklingError as e:
-        raise RawImportError(f"{path}: {e} (only dicts, lists, numbers, strings and numpy "
-                             "arrays are accepted)") from e
-    except Exception as e:
-        raise RawImportError(f"{path}: cannot read as a pickle ({type(e).__name__}: {e})") \
-            from e
-    if not isinstance(data, dict):
-        raise RawImportError(f"{path}: expected a dict at the top, got {type(data).__name__}")
-    _plain(data, path.name)
-    return data
-
-
-#: NAF pickles state lengths in mm but their projections were computed in metres (NAF's
-#: generator divides by 1000 before calling TIGRE); R2-Gaussian's reader (readNAFInfo)
-#: divides the lengths by 1000 too, and so do we: lengths in m, densities in 1/m.
-NAF_LENGTH_SCALE = 1e-3
-
-
-def naf_case(data: dict, path) -> tuple:
-    """(Case, notes) from a loaded NAF pickle, read as R2-Gaussian's ``readNAFInfo`` reads
-    it: fields in its layout's order (nDetector [v, u], projections [view, v, u] line
-    integrals, angles in radians, image [x, y, z]), lengths x ``NAF_LENGTH_SCALE`` (m);
-    "val" becomes the test split."""
-    name = Path(path).name
-
-    def field(key, where=data, label=None):
-        label = label or key
-        if key not in where:
-            raise RawImportError(f"{name}: lacks the field {label}")
-        return where[key]
-
-    def vec(key, n):
-        try:
-            v = np.asarray(field(key), np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise RawImportError(f"{name}: {key} must be {n} numbers") from None
-        if v.size != n:
-            raise RawImportError(f"{name}: {key} must have {n} entries, got {v.size}")
-        return v
-
-    nDet, dDet = vec("nDetector", 2), vec("dDetector", 2)
-    nVox, dVox = vec("nVoxel", 3), vec("dVoxel", 3)
-    splits = {}
-    for split in ("train", "val"):
-        block = field(split)
-        if not isinstance(block, dict):
-            raise RawImportError(f"{name}: {split} must be a dict with projections and angles")
-        proj = field("projections", block, f"{split}.projections")
-        ang = field("angles", block, f"{split}.angles")
-        if not isinstance(proj, np.ndarray) or proj.ndim != 3:
-            raise RawImportError(f"{name}: {split}.projections must be an array "
-                                 "[view, v, u]")
-        ang = np.asarray(ang, np.float64).reshape(-1)
-        if ang.size != proj.shape[0]:
-            raise RawImportError(f"{name}: {split}.angles has {ang.size} entries for "
-                                 f"{proj.shape[0]} projections")
-        if proj.shape[1:] != tuple(int(x) for x in nDet):
-            raise RawImportError(f"{name}: {split}.projections has [v, u] = "
-                                 f"{list(proj.shape[1:])}, nDetector says {nDet.tolist()}")
-        if not (np.all(np.isfinite(proj)) and np.all(np.isfinite(ang))):
-            raise RawImportError(f"{name}: {split} holds NaN/Inf")
-        splits[split] = (proj.astype(np.float32), ang)
-    try:
-        geo = Geometry(mode=str(field("mode")), DSD=field("DSD"), DSO=field("DSO"),
-                       nDetector=nDet, sDetector=nDet * dDet, nVoxel=nVox, sVoxel=nVox * dVox,
-                       offOrigin=data.get("offOrigin", (0, 0, 0)),
-                       offDetector=data.get("offDetector", (0, 0)),
-                       angles=splits["train"][1]).scaled(NAF_LENGTH_SCALE)
-    except (GeometryError, TypeError, ValueError) as e:
-        raise RawImportError(f"{name}: {e}") from e
-    vol = data.get("image")
-    if vol is not None:
-        vol = np.asarray(vol, np.float32)
-        if vol.shape != geo.nVoxel:
-            raise RawImportError(f"{name}: image has shape {list(vol.shape)}, nVoxel says "
-                                 f"[x, y, z] = {list(geo.nVoxel)}")
-    extras = {k: data[k] for k in ("accuracy", "totalAngle", "startAngle", "numTrain",
-                                   "numVal", "filter") if k in data}
-    case = Case(geometry=geo, train=splits["train"][0], test_angles=splits["val"][1],
-                test=splits["val"][0], vol_gt=vol)
-    return case, {"pickle_extras": _jsonable(extras),
-                  "unknown_keys": sorted(set(data) - {
-                      "DSD", "DSO", "nVoxel", "dVoxel", "nDetector", "dDetector", "offOrigin",
-                      "offDetector", "totalAngle", "startAngle", "accuracy", "mode",
-                      "numTrain", "numVal", "train", "val", "image", "filter"})}
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
 
 
 # ---------------------------------------------------------------- normalisation
@@ -346,14 +207,14 @@ def parse_columns(spec: str, nu_raw: int, b: int) -> np.ndarray:
         try:
             a, c = (int(x) for x in part.split(":"))
         except ValueError:
-            raise RawImportError(f"--free-ray {spec!r}: expected column ranges A:B,C:D "
+            raise DatasetError(f"--free-ray {spec!r}: expected column ranges A:B,C:D "
                                  "(raw detector columns), 'auto' or 'none'") from None
         if not 0 <= a < c <= nu_raw:
-            raise RawImportError(f"--free-ray {spec!r}: range {a}:{c} outside the detector's "
+            raise DatasetError(f"--free-ray {spec!r}: range {a}:{c} outside the detector's "
                                  f"{nu_raw} columns")
         cols.update(range(-(-a // b), c // b))
     if not cols:
-        raise RawImportError(f"--free-ray {spec!r}: no whole binned column inside")
+        raise DatasetError(f"--free-ray {spec!r}: no whole binned column inside")
     return np.array(sorted(cols))
 
 
@@ -369,11 +230,11 @@ def detect_free_columns(t: np.ndarray) -> np.ndarray:
     nu = t.shape[2]
     e = EDGE_COLUMNS
     if nu < 4 * e:
-        raise RawImportError(f"detector has {nu} columns; free-ray detection needs >= {4 * e}")
+        raise DatasetError(f"detector has {nu} columns; free-ray detection needs >= {4 * e}")
     c = t.mean(axis=1)                                   # [view, u]
     level = np.concatenate([c[:, :e], c[:, -e:]], 1).mean(1, keepdims=True)
     if np.any(level <= 0):
-        raise RawImportError("free-ray detection: an edge column is dark in some view")
+        raise DatasetError("free-ray detection: an edge column is dark in some view")
     n = c / level                                        # 1 where free (up to the flat)
     # Noise of one column's mean: the scatter of edge-column ratios across the views.
     ratio = c[:, 0] / c[:, -1]
@@ -412,7 +273,7 @@ def normalise(raw: np.ndarray, dark=None, flat=None, free_cols=None, floor: floa
         gain = flat - (np.float32(0) if dark is None else dark)
         bad = gain <= floor
         if np.count_nonzero(bad) > 0.01 * gain.size or np.median(gain) <= floor:
-            raise RawImportError(f"flats: {np.count_nonzero(bad)} of {gain.size} pixels are "
+            raise DatasetError(f"flats: {np.count_nonzero(bad)} of {gain.size} pixels are "
                                  "not brighter than the darks (flats darker than darks?)")
         rec["flat_pixels_floored"] = int(np.count_nonzero(bad))
         t = sig / np.where(bad, floor, gain)
@@ -422,7 +283,7 @@ def normalise(raw: np.ndarray, dark=None, flat=None, free_cols=None, floor: floa
             rec["drift_per_view"] = {"min": float(drift.min()), "max": float(drift.max())}
     else:
         if free_cols is None or not len(free_cols):
-            raise RawImportError("no flats given and no free-ray columns found: give --flats "
+            raise DatasetError("no flats given and no free-ray columns found: give --flats "
                                  "(and --darks) or --free-ray A:B,C:D")
         region = sig[:, :, free_cols].mean(axis=2)       # [view, v]
         d = region.mean(axis=1)
@@ -437,56 +298,6 @@ def normalise(raw: np.ndarray, dark=None, flat=None, free_cols=None, floor: floa
     return np.maximum(p, 0).astype(np.float32), rec
 
 
-# ---------------------------------------------------------------- centre of rotation
-def symmetry_centre(profile: np.ndarray) -> float:
-    """The continuous column (pixel centres at i + 0.5) about which ``profile`` [u] is most
-    symmetric: least squares over candidate centres, linear interpolation, parabolic
-    refinement of the best one."""
-    nu = profile.size
-    x = np.arange(nu) + 0.5
-    t = np.arange(0.0, nu / 2, 0.5)
-
-    def cost(c):
-        # only pairs that both fall on the detector: a truncated side says nothing
-        tt = t[t <= min(c - 0.5, nu - 0.5 - c)]
-        a = np.interp(c + tt, x, profile)
-        b = np.interp(c - tt, x, profile)
-        return float(np.mean((a - b) ** 2))
-
-    grid = np.arange(nu * 0.25, nu * 0.75, 0.05)
-    costs = np.array([cost(c) for c in grid])
-    i = int(np.clip(np.argmin(costs), 1, grid.size - 2))
-    y0, y1, y2 = costs[i - 1:i + 2]
-    den = y0 - 2 * y1 + y2
-    shift = 0.5 * (y0 - y2) / den if den > 0 else 0.0
-    return float(grid[i] + np.clip(shift, -1, 1) * 0.05)
-
-
-def estimate_cor(proj: np.ndarray, angles: np.ndarray) -> tuple:
-    """Column (continuous, pixel centres at i + 0.5) onto which the rotation axis projects,
-    and an uncertainty (pixels), from line integrals [view, v, u] of a full-circle scan.
-
-    Every line is measured twice in a 360-degree scan (the conjugate ray of column u at
-    view a is column -u at view a + pi + 2 gamma), so the sum over views of the
-    projections is symmetric about the axis' column (exactly in the mid-plane, nearly in
-    the other rows). The uncertainty is half the spread of the estimates from the even and
-    odd views and from the upper and lower rows, at least 0.05 pixel."""
-    a = np.sort(np.mod(angles, 2 * np.pi))
-    gaps = np.diff(np.concatenate([a, a[:1] + 2 * np.pi]))
-    if a.size < 8 or gaps.max() > 4 * np.median(gaps) or gaps.max() > np.deg2rad(30):
-        raise RawImportError("--cor auto needs a full 360-degree scan with evenly spread "
-                             "views (largest angular gap "
-                             f"{np.degrees(gaps.max()):.1f} degrees); give --cor PIXELS")
-    c = symmetry_centre(proj.sum(axis=(0, 1)))
-    nv = proj.shape[1]
-    parts = [symmetry_centre(proj[0::2].sum(axis=(0, 1))),
-             symmetry_centre(proj[1::2].sum(axis=(0, 1)))]
-    if nv >= 4:
-        parts += [symmetry_centre(proj[:, :nv // 2].sum(axis=(0, 1))),
-                  symmetry_centre(proj[:, nv // 2:].sum(axis=(0, 1)))]
-    return c, max(0.05, 0.5 * (max(parts) - min(parts)))
-
-
 # ---------------------------------------------------------------- geometry and volume
 def default_volume(geo: Geometry, n_xy: int, side=None) -> dict:
     """nVoxel / sVoxel: a cube of edge ``side``, or the largest cylinder about the axis
@@ -499,7 +310,7 @@ def default_volume(geo: Geometry, n_xy: int, side=None) -> dict:
     w = nu / 2 * du - abs(geo.offDetector[1])
     h = nv / 2 * dv - abs(geo.offDetector[0])
     if w <= 0 or h <= 0:
-        raise RawImportError(f"offDetector {list(geo.offDetector)} leaves no part of the "
+        raise DatasetError(f"offDetector {list(geo.offDetector)} leaves no part of the "
                              "detector on one side of the axis")
     if geo.mode == "cone":
         r = geo.DSO * math.sin(math.atan(w / geo.DSD))
@@ -515,11 +326,11 @@ def select_views(n: int, n_train, n_test: int, seed: int) -> tuple:
     """Training views evenly spaced over the scan, test views drawn (seeded) from the rest."""
     n_train = n if n_train is None else int(n_train)
     if not 1 <= n_train <= n:
-        raise RawImportError(f"--train-views {n_train}: the scan has {n} views")
+        raise DatasetError(f"--train-views {n_train}: the scan has {n} views")
     train = np.unique(np.floor(np.arange(n_train) * n / n_train).astype(int))
     rest = np.setdiff1d(np.arange(n), train)
     if not 0 <= n_test <= rest.size:
-        raise RawImportError(f"--test-views {n_test}: only {rest.size} views are left after "
+        raise DatasetError(f"--test-views {n_test}: only {rest.size} views are left after "
                              f"{train.size} training views")
     test = np.sort(np.random.default_rng(seed).choice(rest, n_test, replace=False)) \
         if n_test else np.zeros(0, int)
@@ -536,22 +347,22 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
         try:
             scan = load_scan(opts["scene"])
         except ScanError as e:
-            raise RawImportError(str(e)) from e
+            raise DatasetError(str(e)) from e
         base = scan.geometry
         paths = tiff_list(source)
         angles = read_angles(opts["angles"]) if opts.get("angles") else base.angles
         if len(paths) != angles.size:
             where = (f"--angles {opts['angles']}" if opts.get("angles")
                      else f"{opts['scene']} (angles)")
-            raise RawImportError(f"{source}: {len(paths)} TIFFs but {where} has "
+            raise DatasetError(f"{source}: {len(paths)} TIFFs but {where} has "
                                  f"{angles.size} angles")
         unit = opts.get("unit") or "scene unit"
         record["source"] = {"kind": "tiff+scene", "scene": str(opts["scene"]),
-                            "not_used": {"test_angles": len(scan.test_angles),
-                                         "noise": scan.noise, "object": scan.object}}
+                            "not_used": {k: scan.info()[k] for k in
+                                         ("test_angles", "noise", "object")}}
     else:
         if opts.get("angles"):
-            raise RawImportError("--angles needs --scene (a FIPS text file states its angles)")
+            raise DatasetError("--angles needs --scene (a FIPS text file states its angles)")
         known, unknown = parse_fips(source)
         n = int(known["NumberImages"])
         paths = fips_images(source, n)
@@ -571,7 +382,7 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
                         sDetector=(nv_raw * px, nu_raw * px), nVoxel=(1, 1, 1),
                         sVoxel=(1e-3 * px,) * 3, angles=angles)
     elif tuple(base.nDetector) != (nv_raw, nu_raw):
-        raise RawImportError(f"{paths[0]}: frame [v, u] = {[nv_raw, nu_raw]} but "
+        raise DatasetError(f"{paths[0]}: frame [v, u] = {[nv_raw, nu_raw]} but "
                              f"{opts['scene']} nDetector = {list(base.nDetector)}")
     angles = opts["angle_sign"] * angles
     # binning drops trailing rows/columns: the kept detector's centre moves by half of them
@@ -592,20 +403,20 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
     from mi_grg.data.dataset import _json_default, save_case
     source, out = Path(source), Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise RawImportError(f"--out {out}: exists and is not empty (use --overwrite)")
+        raise DatasetError(f"--out {out}: exists and is not empty (use --overwrite)")
     if not source.exists() and not _glob.glob(str(source)):
-        raise RawImportError(f"{source}: not found")
+        raise DatasetError(f"{source}: not found")
     if int(bin) < 1:
-        raise RawImportError(f"--bin {bin}: must be an integer >= 1")
+        raise DatasetError(f"--bin {bin}: must be an integer >= 1")
     if reference not in (None, "none", "fdk-all"):
-        raise RawImportError(f"--reference {reference!r}: expected fdk-all or none")
+        raise DatasetError(f"--reference {reference!r}: expected fdk-all or none")
     if angle_sign not in (1, -1):
-        raise RawImportError(f"--angle-sign {angle_sign}: expected 1 or -1")
+        raise DatasetError(f"--angle-sign {angle_sign}: expected 1 or -1")
     opts = dict(flats=flats, darks=darks, free_ray=free_ray, cor=cor, bin=int(bin),
                 train_views=train_views, test_views=test_views, seed=seed, reference=reference,
                 nVoxel=nVoxel, sVoxel=sVoxel, scene=scene, angles=angles,
                 angle_sign=angle_sign, unit=unit)
-    record = {"command": "mi-grg import", "options": _jsonable(opts)}
+    record = {"command": "mi-grg import", "options": opts}
     is_pickle = source.suffix.lower() in (".pickle", ".pkl")
 
     if is_pickle:
@@ -617,7 +428,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
                 (["--free-ray"] if free_ray != "auto" else []) + \
                 (["--angle-sign"] if angle_sign != 1 else [])
         if given:
-            raise RawImportError(f"{source}: {', '.join(given)} do not apply to a NAF pickle "
+            raise DatasetError(f"{source}: {', '.join(given)} do not apply to a NAF pickle "
                                  "(its projections are line integrals with their own split, "
                                  "geometry and volume)")
         case, notes = naf_case(load_naf(source), source)
@@ -645,7 +456,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
                 sig = sig / np.maximum(flat - (0.0 if dark is None else dark), 1e-6)
             cols = detect_free_columns(sig)
             if flat is None and len(cols) == 0:
-                raise RawImportError(f"{source}: no free-ray columns found (the object "
+                raise DatasetError(f"{source}: no free-ray columns found (the object "
                                      "shadows the detector's edges?); give --flats or "
                                      "--free-ray A:B,C:D")
         else:
@@ -669,7 +480,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
             try:
                 pix = float(cor)
             except ValueError:
-                raise RawImportError(f"--cor {cor!r}: expected auto or a number of pixels") \
+                raise DatasetError(f"--cor {cor!r}: expected auto or a number of pixels") \
                     from None
             off = pix * du_raw - crop
             record["cor"] = {"method": "given", "pixels": pix, "offDetector_u": off}
@@ -700,7 +511,7 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         try:
             vol_geo = geo_all.replace(angles=a, **vol)
         except GeometryError as e:
-            raise RawImportError(f"volume: {e}") from e
+            raise DatasetError(f"volume: {e}") from e
         case_geo = vol_geo.with_angles(a[train_idx])
         test_angles, test = a[test_idx], proj_all[test_idx]
         record["views"] = {"n_scan": int(a.size), "train": train_idx.tolist(),
