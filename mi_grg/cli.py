@@ -261,6 +261,22 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_import(args) -> int:
+    from mi_grg.data.raw_import import import_scan
+    opts = {k: getattr(args, k) for k in (
+        "flats", "darks", "free_ray", "cor", "bin", "train_views", "test_views", "seed",
+        "reference", "nVoxel", "sVoxel", "scene", "angles", "angle_sign", "unit", "check",
+        "overwrite")}
+    rec = import_scan(args.source, args.out, **opts)
+    cor = rec.get("cor", {})
+    print(f"wrote {args.out}: {len(rec.get('views', {}).get('train', [])) or 'all'} train "
+          f"views, offDetector[1] = {rec['geometry']['offDetector'][1]:.4g} "
+          f"({cor.get('method', 'from the source')}"
+          + (f", {cor['pixels']:.2f} +- {cor['uncertainty_pixels']:.2f} px" if
+             "uncertainty_pixels" in cor else "") + f"); choices in {args.out}/import.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mi_grg.data.phantoms import PHANTOMS
     p = argparse.ArgumentParser(prog="mi-grg", description=__doc__)
@@ -319,6 +335,32 @@ def build_parser() -> argparse.ArgumentParser:
                    help="per-view confidence of pass/fail (default 0.999)")
     q.add_argument("--out", required=True)
     q.set_defaults(func=cmd_render)
+
+    i = sub.add_parser("import", help="real scanner data (TIFF + FIPS text / scene XML, "
+                       "NAF pickle) -> data set; see docs/real_data.md")
+    i.add_argument("source", help="FIPS text file, TIFF folder/glob (with --scene) or "
+                   "NAF .pickle")
+    i.add_argument("--out", required=True)
+    i.add_argument("--flats", help="glob of flat-field TIFFs (averaged)")
+    i.add_argument("--darks", help="glob of dark TIFFs (averaged)")
+    i.add_argument("--free-ray", default="auto", help="I0 columns: auto, none or A:B,C:D")
+    i.add_argument("--cor", help="centre of rotation: auto or offDetector[1] in pixels")
+    i.add_argument("--bin", type=int, default=1, help="sum B x B detector pixels")
+    i.add_argument("--train-views", type=int, help="evenly spaced (default all)")
+    i.add_argument("--test-views", type=int, default=0, help="drawn from the rest")
+    i.add_argument("--seed", type=int, default=0, help="test-view draw")
+    i.add_argument("--reference", choices=("fdk-all", "none"),
+                   help="fdk-all: vol_gt.npy = FDK of all views (pseudo ground truth)")
+    i.add_argument("--nVoxel", type=int, help="voxels across (default min(columns, 256))")
+    i.add_argument("--sVoxel", type=float, help="cube edge (default: largest cylinder "
+                   "every view sees)")
+    i.add_argument("--scene", help="scene XML (ct_scanner) for a plain TIFF stack")
+    i.add_argument("--angles", help="with --scene: angles file, degrees, one per line")
+    i.add_argument("--angle-sign", type=int, default=1, choices=(1, -1))
+    i.add_argument("--unit", help="length unit name recorded (default mm; scene unit)")
+    i.add_argument("--check", action="store_true", help="write OUT/check.png")
+    i.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    i.set_defaults(func=cmd_import)
 
     add_experiment_parser(sub)  # `experiment NAME --suite FILE --out DIR` and `report`
 

@@ -102,10 +102,12 @@ def geometry_info(case: Case) -> dict:
             "n_test_angles": int(len(case.test_angles)), "scene_scale": s}
 
 
-def score(pred: np.ndarray, gt: np.ndarray) -> dict:
-    """3-D PSNR / SSIM in the R2-Gaussian convention (data range 1)."""
+def score(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> dict:
+    """3-D PSNR / SSIM in the R2-Gaussian convention (data range 1 for normalised data;
+    ``mi_grg.data.units.data_range`` gives a case's)."""
     from mi_grg.evaluation.metrics import psnr_3d, ssim_3d
-    return {"psnr_3d": float(psnr_3d(pred, gt)), "ssim_3d": float(ssim_3d(pred, gt))}
+    return {"psnr_3d": float(psnr_3d(pred, gt, data_range)),
+            "ssim_3d": float(ssim_3d(pred, gt, data_range))}
 
 
 def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **options):
@@ -128,11 +130,15 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
                              f"options are {takes}")
     if out_dir is not None and "out_dir" in params:
         options = {**options, "out_dir": str(out_dir)}
+    from mi_grg.data.units import data_range, scaled_case, unit_scale
     t0 = time.perf_counter()
-    result = func(case, **options)
+    # Physical units (1/mm): the method sees densities of order 1, the result gets the unit
+    # back; normalised cases run unchanged (s = 1). See mi_grg.data.units.
+    s = unit_scale(case)
+    result = func(scaled_case(case, s), **options)
     seconds = time.perf_counter() - t0
     vol, info = result if isinstance(result, tuple) else (result, None)
-    vol = np.asarray(vol, dtype=np.float32)
+    vol = np.asarray(vol, dtype=np.float32) * np.float32(s)
     expected = tuple(case.geometry.nVoxel)
     if vol.shape != expected:
         raise RuntimeError(f"method {method!r} returned shape {vol.shape}, expected nVoxel "
@@ -147,8 +153,14 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
                "data": case.info, "machine": machine_info()}
     if info is not None:
         metrics["method_info"] = info
+    if s != 1.0:
+        metrics["unit_scale"] = s   # densities the method saw = file densities / s
     if case.vol_gt is not None:
-        metrics.update(score(vol, case.vol_gt))
+        rng, rule = data_range(case, case.vol_gt)
+        metrics.update(score(vol, case.vol_gt, rng))
+        metrics["psnr_data_range"], metrics["psnr_data_range_rule"] = rng, rule
+        if case.info.get("reference"):   # e.g. a pseudo ground truth (FDK of all views)
+            metrics["ground_truth"] = case.info["reference"]
     if out_dir is not None:
         write_outputs(out_dir, vol, metrics, case.vol_gt)
     return vol, metrics
