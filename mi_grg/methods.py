@@ -31,6 +31,7 @@ METHODS: dict = {
     "fdk": "mi_grg.classical.fdk:reconstruct_fdk",
     "sart": "mi_grg.classical.iterative:reconstruct_sart",
     "asd-pocs": "mi_grg.classical.iterative:reconstruct_asd_pocs",
+    "pdhg": "mi_grg.classical.pdhg:reconstruct_pdhg",
     "r2": "mi_grg.training.trainer:reconstruct_r2",
     "gr": "mi_grg.training.trainer:reconstruct_gr",
 }

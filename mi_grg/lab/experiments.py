@@ -55,13 +55,16 @@ EXPERIMENT_KEYS = {"table1": ("methods", "cases"), "table2": ("cases",),
                    "iterations": ("methods", "log_3d_every", "cases"),
                    "speed": ("methods", "cases"), "views": ("views", "methods", "cases"),
                    "seeds": ("seeds", "methods", "cases")}
-ALL_METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
+ALL_METHODS = ("fdk", "sart", "asd-pocs", "pdhg", "r2", "gr")
 CATEGORIES = {"HO": "human organs / organ-like", "BS": "biological specimens",
               "AO": "artificial objects"}
 CASE_FIELDS = ("name", "category", "source", "views", "test_views", "n", "det", "mode",
                "noise", "seed")
 TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.config.TrainConfig
-CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve"}
+CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve", "pdhg": "pdhg-curve"}
+#: Table 1's second row for the iterative classical methods: the paper's fixed sweep count
+#: (their default stops on held-out views, mi_grg.classical.heldout).
+FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"}, "asd-pocs": {"n_iter": 10, "stop": "none"}}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
 
 
@@ -334,6 +337,9 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
         if name == "table1":
             for m in ecfg.get("methods") or ALL_METHODS:
                 add(case, m, m, _opts(suite, m))
+                if m in FIXED_ROWS:
+                    add(case, f"{m}-fixed", m, _opts(suite, m, **FIXED_ROWS[m]),
+                        f"{m} (fixed {FIXED_ROWS[m]['n_iter']} sweeps)")
         elif name == "table2":
             for run, m, o, label in table2_variants():
                 add(case, run, m, _opts(suite, m, **o), label)
@@ -385,7 +391,7 @@ def _curve_method(kind: str):
     """``kind`` ("sart" / "asd-pocs") with a per-sweep log of (seconds, 3-D PSNR) written to
     OUT/progress_log.csv; the time spent scoring is excluded from the logged seconds."""
     def run(case, out_dir=None, progress: bool = True, **options):
-        from mi_grg.classical import iterative
+        from mi_grg.classical import iterative, pdhg
         from mi_grg.evaluation.metrics import psnr_3d
         rows, spent = [], [0.0]
         t0 = time.perf_counter()
@@ -398,7 +404,7 @@ def _curve_method(kind: str):
             rows.append(row)
             spent[0] += time.perf_counter() - t
 
-        func = iterative.sart if kind == "sart" else iterative.asd_pocs
+        func = {"sart": iterative.sart, "asd-pocs": iterative.asd_pocs, "pdhg": pdhg.pdhg}[kind]
         vol = func(case.train, case.geometry, callback=callback, progress=progress, **options)
         if out_dir is not None:
             Path(out_dir).mkdir(parents=True, exist_ok=True)
@@ -559,6 +565,10 @@ def stale_options(run_dir: Path) -> list:
 def stale_keys(m: dict) -> list:
     """``stale_options`` for a run's metrics.json already read into ``m``."""
     from mi_grg.training.config import ADDED_LATER, PRESETS, TrainConfig, make_config
+    if (m.get("method") in ("sart", "asd-pocs", "pdhg")
+            and (m.get("options") or {}).get("stop", "heldout") == "heldout"
+            and (m.get("method_info") or {}).get("protocol") != "heldout"):
+        return ["stop"]     # ran a fixed sweep count before held-out stopping was the default
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return []

@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.data.case import Case
+from mi_grg.data.case import Case, holdout_split
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
 from mi_grg.core.gaussians import Gaussians
@@ -277,10 +277,9 @@ class Trainer:
         self.sched = sched
         # Views: hold out every n-th one for early stopping (never trained on).
         n = geo.n_views
-        held = (np.arange(n) % cfg.holdout_every == 0) if cfg.holdout_every else np.zeros(n, bool)
-        if held.all():
+        self.fit_idx, self.held_idx = holdout_split(n, cfg.holdout_every)
+        if len(self.fit_idx) == 0:
             raise ValueError("holdout_every leaves no training views")
-        self.fit_idx, self.held_idx = np.flatnonzero(~held), np.flatnonzero(held)
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(n)]
         # The config's window and cap are the paper's; this run's depend on its length and grid.
