@@ -129,7 +129,7 @@ class PDHG:
 
     def __init__(self, proj: np.ndarray, geometry: Geometry, angles: np.ndarray, *,
                  lam: float, upper=None, gamma: float = 1.0, norm_A=None,
-                 power_iters: int = 20, nonneg: bool = True):
+                 power_iters: int = 8, nonneg: bool = True):
         if not (math.isfinite(lam) and lam >= 0):
             raise ValueError(f"lam must be a finite number >= 0, got {lam}")
         if not (math.isfinite(gamma) and gamma > 0):
@@ -206,7 +206,7 @@ class PDHG:
 
 def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATIONS,
          lam: float = FIXED_LAM, upper=None, gamma: float = DEFAULT_GAMMA, nonneg: bool = True, norm_A=None,
-         power_iters: int = 20, progress: bool = True, callback=None) -> np.ndarray:
+         power_iters: int = 8, progress: bool = True, callback=None) -> np.ndarray:
     """Chambolle-Pock TV reconstruction (see the module docstring).
 
     Args:
@@ -246,7 +246,7 @@ def _to_numpy(x, geometry):
 
 # ---------------------------------------------------------------- reconstruction contract
 def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamma=None,
-                     upper=None, nonneg: bool = True, power_iters: int = 20,
+                     upper=None, nonneg: bool = True, power_iters: int = 8,
                      eval_every: int = EVAL_EVERY, holdout_every=None, oracle=None,
                      progress: bool = True):
     """The ``--method pdhg`` entry point: Chambolle-Pock TV of ``case.train``.
@@ -257,7 +257,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     "heldout", HELDOUT_ITERATION_CAP; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
     under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), gamma
     (primal/dual step balance, DEFAULT_GAMMA), upper (None), nonneg (True), power_iters
-    (20), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
+    (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
     ground truth exists), progress. Returns float32 [x, y, z] (and, under "heldout", what
     was decided); unknown options raise.
     """
