@@ -48,7 +48,7 @@ DEFAULT_GAMMA = 0.3
 #: Iterations of ``stop="none"`` when n_iter is not given.
 FIXED_ITERATIONS = 100
 #: Cap on iterations per candidate under ``stop="heldout"``.
-HELDOUT_ITERATION_CAP = 120
+HELDOUT_ITERATION_CAP = 60
 #: Held-out evaluations every this many iterations: an iteration moves far less than a
 #: SART sweep (one simultaneous update instead of one per view).
 EVAL_EVERY = 5
