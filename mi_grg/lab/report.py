@@ -101,14 +101,10 @@ def _commands(out_dir) -> list:
 
 
 def _value(row, key):
-    """metrics.json's ``key`` as a finite float or None; "seconds" is the result's time
-    (a held-out-stopped run's oracle sweeps and scoring, which decide nothing, excluded)."""
     m = row.get("metrics") if row else None
     if not m or key not in m or m[key] is None:
         return None
     v = m[key]
-    if key == "seconds" and isinstance(v, (int, float)):
-        v = v - float((m.get("method_info") or {}).get("oracle_seconds") or 0.0)
     return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
