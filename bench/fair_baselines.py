@@ -10,7 +10,10 @@ decides nothing) and the time of the result (the oracle's extra sweeps and scori
 excluded). Targets (issue 22): held-out-stopped ASD-POCS and PDHG within 0.5 dB of their
 oracle on average, at most 30 s per 64^3 case.
 
-    .venv/bin/python bench/fair_baselines.py [--cases shepp,needles,bone] [--reps 1]
+    MI_GRG_DATA=/work/shared/data .venv/bin/python bench/fair_baselines.py \
+        [--cases shepp,needles,bone] [--reps 1]
+
+(volume cases such as bone read their source volume from $MI_GRG_DATA.)
 
 Writes docs/bench/fair_baselines.{json,md}; the data sets go to $TMPDIR/fair_baselines.
 """
@@ -37,10 +40,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=1, help="repetitions (times: median)")
     ap.add_argument("--suite", default=str(ROOT / "experiments" / "suite_cpu.json"))
     args = ap.parse_args(argv)
-    import mi_grg
     from mi_grg.data.dataset import load_case
     from mi_grg.lab.experiments import load_suite, simulate_data
-    from mi_grg.methods import code_version, reconstruct
+    from mi_grg.methods import reconstruct
     suite = load_suite(args.suite)
     data_root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "fair_baselines"
     rows = []
@@ -73,6 +75,15 @@ def main(argv=None) -> int:
             rows.append(row)
             print(json.dumps({k: row.get(k) for k in ("case", "run", "psnr_3d", "seconds",
                                                       "gap_db", "chosen")}), flush=True)
+        write(rows, args)          # after every case: nothing lost on a crash
+    print(markdown(write(rows, args)))
+    return 0
+
+
+def write(rows: list, args) -> dict:
+    """Summarise ``rows`` and write docs/bench/fair_baselines.{json,md}; returns the JSON."""
+    import mi_grg
+    from mi_grg.methods import code_version
     summary = {}
     for run in ("sart", "asd-pocs", "pdhg"):
         sel = [r for r in rows if r["run"] == run and r.get("gap_db") is not None]
@@ -82,15 +93,15 @@ def main(argv=None) -> int:
                             "mean_psnr_3d": statistics.mean(r["psnr_3d"] for r in sel)}
     result = {"machine": {"variant": mi_grg.variant(), "cores": os.cpu_count(),
                           "mi_grg": code_version()},
-              "cases": args.cases.split(","), "reps": args.reps, "rows": rows,
+              "cases": sorted({r["case"] for r in rows}, key=[r["case"] for r in rows].index),
+              "reps": args.reps, "rows": rows,
               "summary": summary,
               "targets": {"gap_db": TARGET_GAP_DB, "seconds": TARGET_SECONDS}}
     out = ROOT / "docs" / "bench"
     out.mkdir(parents=True, exist_ok=True)
     (out / "fair_baselines.json").write_text(json.dumps(result, indent=2, default=float))
     (out / "fair_baselines.md").write_text(markdown(result))
-    print(markdown(result))
-    return 0
+    return result
 
 
 def _f(v, d=2):

@@ -19,8 +19,8 @@ Protocol (``run_heldout``), never looking at the ground truth:
 Oracle (only when the case has a ground truth, ``oracle`` on): the final run continues
 past the chosen sweep and scores the 3-D PSNR of every sweep, to show how close the rule
 got to the best sweep chosen with the ground truth. It is labelled "oracle" in the info,
-its time (``oracle_seconds``) is left out of metrics.json's "seconds" (mi_grg.methods.reconstruct)
-and it decides nothing.
+its time (``oracle_seconds``) is left out of metrics.json's "seconds"
+(mi_grg.methods.reconstruct) and it decides nothing.
 """
 from __future__ import annotations
 

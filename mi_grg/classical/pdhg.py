@@ -18,11 +18,11 @@ power iteration on A^T A, ||D|| <= sqrt(12) in 3-D (closed-form bound); the step
 sigma tau ||K||^2 = 0.99 < 1, which the convergence proof needs, with sigma / tau =
 ``gamma``^2 (``gamma`` = sigma ||K||, the balance between primal and dual steps).
 
-``lam`` (the option) is dimensionless: lambda = lam x max(A^T b), so the same value means
-the same thing in mm or in R2-Gaussian's normalised units and for any density scale (both
-terms of the objective scale alike).
+``lam`` (the option) is dimensionless: lambda = lam x max(A^T b), so the same value poses
+the same problem in mm or in R2-Gaussian's normalised units and for any density scale
+(both terms of the objective scale alike). The step balance ``gamma`` is not unit-free.
 
-``primal_dual_gap`` is the gap of this saddle-point problem for a finite ``upper``
+``PDHG.gap`` is the primal-dual gap of this saddle-point problem for a finite ``upper``
 (G* of a box is finite; with no upper bound the dual is -inf off a cone).
 """
 from __future__ import annotations
@@ -37,6 +37,7 @@ import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
 from mi_grg.classical.joseph import JosephProjector, check_angles, check_projections
+from mi_grg.classical.iterative import _to_numpy
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
 GRAD_NORM = math.sqrt(12.0)
@@ -128,7 +129,7 @@ class PDHG:
     iteration, ``x`` is the current primal volume (flat mi.Float)."""
 
     def __init__(self, proj: np.ndarray, geometry: Geometry, angles: np.ndarray, *,
-                 lam: float, upper=None, gamma: float = 1.0, norm_A=None,
+                 lam: float, upper=None, gamma: float = DEFAULT_GAMMA, norm_A=None,
                  power_iters: int = 8, nonneg: bool = True):
         if not (math.isfinite(lam) and lam >= 0):
             raise ValueError(f"lam must be a finite number >= 0, got {lam}")
@@ -205,7 +206,8 @@ class PDHG:
 
 
 def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATIONS,
-         lam: float = FIXED_LAM, upper=None, gamma: float = DEFAULT_GAMMA, nonneg: bool = True, norm_A=None,
+         lam: float = FIXED_LAM, upper=None, gamma: float = DEFAULT_GAMMA,
+         nonneg: bool = True, norm_A=None,
          power_iters: int = 8, progress: bool = True, callback=None) -> np.ndarray:
     """Chambolle-Pock TV reconstruction (see the module docstring).
 
@@ -238,10 +240,6 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
             if callback is not None and callback(it, _to_numpy(solver.x, geometry)):
                 break
     return _to_numpy(solver.x, geometry)
-
-
-def _to_numpy(x, geometry):
-    return np.array(x.numpy(), dtype=np.float32, copy=True).reshape(geometry.nVoxel)
 
 
 # ---------------------------------------------------------------- reconstruction contract
