@@ -16,6 +16,12 @@ Protocol (``run_heldout``), never looking at the ground truth:
    uses every view (issue 26). A sweep over 25 views and one over 21 do about the same
    per view, so the count transfers.
 
+What the rule sees: the held-out views measure the error of predicting projections, not
+the 3-D error. On noisy sparse views, SART's and ASD-POCS's 3-D error grows after a few
+sweeps mostly through voxel noise that cancels along rays, so the held-out PSNR can keep
+rising long after the 3-D PSNR peaked and prefers weak regularisation; the sweep cap then
+decides (docs/bench/fair_baselines.md measures how far that lands from the oracle).
+
 Oracle (only when the case has a ground truth, ``oracle`` on): the final run continues
 past the chosen sweep and scores the 3-D PSNR of every sweep, to show how close the rule
 got to the best sweep chosen with the ground truth. It is labelled "oracle" in the info,
