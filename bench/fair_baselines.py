@@ -39,7 +39,14 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default="shepp,needles,bone")
     ap.add_argument("--reps", type=int, default=1, help="repetitions (times: median)")
     ap.add_argument("--suite", default=str(ROOT / "experiments" / "suite_cpu.json"))
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="re-write the .md from the existing .json (no runs)")
     args = ap.parse_args(argv)
+    if args.markdown_only:
+        result = json.loads((ROOT / "docs" / "bench" / "fair_baselines.json").read_text())
+        (ROOT / "docs" / "bench" / "fair_baselines.md").write_text(markdown(result))
+        print(markdown(result))
+        return 0
     from mi_grg.data.dataset import load_case
     from mi_grg.lab.experiments import load_suite, simulate_data
     from mi_grg.methods import reconstruct
@@ -141,6 +148,20 @@ def markdown(result: dict) -> str:
     for run, s in result["summary"].items():
         lines.append(f"| {run} | {_f(s['mean_psnr_3d'])} | {_f(s['mean_gap_db'])} | "
                      f"{s['max_seconds']:.1f} |")
+    from mi_grg.classical.iterative import HELDOUT_SWEEP_CAP
+    from mi_grg.classical.pdhg import HELDOUT_ITERATION_CAP
+    cands = [(r["run"], c) for r in result["rows"] for c in r.get("candidates") or []]
+    at_cap = sum(c["sweeps_run"] >= (HELDOUT_ITERATION_CAP if run == "pdhg"
+                                     else HELDOUT_SWEEP_CAP) for run, c in cands)
+    lines += ["", f"The rule stopped {len(cands) - at_cap} of the {len(cands)} candidate runs "
+              f"before the sweep cap ({HELDOUT_SWEEP_CAP} sweeps for SART / ASD-POCS, "
+              f"{HELDOUT_ITERATION_CAP} iterations for PDHG); the others ran to the cap with "
+              "the held-out PSNR still rising or within 0.5 % of its best. Held-out views "
+              "measure how well projections are predicted; the 3-D error of SART and "
+              "ASD-POCS grows after a few sweeps through voxel noise that largely cancels "
+              "along rays, so on these noisy cases the held-out signal cannot see their "
+              "semi-convergence and prefers the weakest TV weight; PDHG's TV minimiser does "
+              "not semi-converge, and there the rule lands near its oracle."]
     return "\n".join(lines) + "\n"
 
 

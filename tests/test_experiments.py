@@ -184,11 +184,21 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     plan = run_experiment("table1", suite, out, dry_run=True)
     assert plan["todo"] == 1 and plan["runs"][0]["stale"] == ["tv_every"]
     md = write_report(out, tmp_path / "r.md").read_text()     # the report says so
-    assert "- table1: 1 r2 / gr run(s), differing in tv_every" in md
+    assert "- table1: 1 run(s), differing in tv_every" in md
     res = run_experiment("table1", suite, out, jobs=1, progress=False)
     assert res["ran"] == 1 and res["failed"] == 0
     assert stale_options(run_dir) == []
     assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
+
+
+def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
+    from mi_grg.lab.experiments import stale_keys
+    assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before
+    assert stale_keys({"method": "asd-pocs", "options": {},
+                       "method_info": {"protocol": "heldout"}}) == []
+    assert stale_keys({"method": "sart", "options": {"stop": "none", "n_iter": 10}}) == []
+    assert stale_keys({"method": "sart-curve", "options": {}}) == []
+    assert stale_keys({"method": "fdk", "options": {}}) == []
 
 
 def _table_row(md: str, section: str, name: str) -> list:
@@ -365,7 +375,8 @@ def test_repo_suites_are_valid():
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
     t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
-    assert len(t1) == 5 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, r2, gr
+    assert len(t1) == 8 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
 

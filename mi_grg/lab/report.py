@@ -757,7 +757,7 @@ def _setup_md(all_rows: dict) -> str:
         lines += ["", "Runs made under other defaults than this code's (their numbers stand as "
                       "they ran; `bash experiments/run_cpu.sh` re-runs them):", ""]
         for exp, (n, keys) in sorted(older.items()):
-            lines.append(f"- {exp}: {n} r2 / gr run(s), differing in {', '.join(sorted(keys))}")
+            lines.append(f"- {exp}: {n} run(s), differing in {', '.join(sorted(keys))}")
     if sart:
         lines += ["", "Iterative baselines: " + ", ".join(
             f"{m} n_iter={n}" for m, n in sorted(sart, key=str)) +
