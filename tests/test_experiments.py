@@ -312,8 +312,12 @@ def test_fair_margin_oracle_and_anytime_tables(tmp_path):
     assert by[("a", "asd-pocs")] == [DASH, "29.00", "29.00", "29.00"]
     assert by[("a", "asd-pocs-fixed")] == [DASH, "27.00", "27.00", "27.00"]
     assert by[("a", "gr")] == [DASH, DASH, DASH, "31.00"]
+    _fake_run(out, "speed", "a", "fdk", "HO", "fdk", psnr_3d=20.0, ssim_3d=0.5)
     md = write_report(out, tmp_path / "r.md").read_text()
     assert "oracle" in md and "29.50 (5)" in md
+    # the speed plot of case a shows Table 1's held-out run beside the speed runs
+    assert "asd-pocs (held-out): point" in md and "| a | asd-pocs (held-out) |" in md
+    assert (tmp_path / "img" / "results" / "speed_a.png").is_file()
 
 
 def test_iteration_plot_and_replayed_stop(tmp_path):

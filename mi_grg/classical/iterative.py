@@ -393,7 +393,7 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
     by gr's rule and then run on all views, mi_grg.classical.heldout; "none": exactly
     n_iter sweeps, the paper's tables), n_iter (under "heldout" a cap, default
     HELDOUT_SWEEP_CAP; under "none" default FIXED_SWEEPS), blocksize (1 = SART; e.g. 20 =
-    OS-SART), relaxation (lambda, 1.0), relaxation_decay (0.99 per sweep), nonneg (True),
+    OS-SART, which moves less per sweep: raise the cap n_iter with it), relaxation (lambda, 1.0), relaxation_decay (0.99 per sweep), nonneg (True),
     init (None/"zeros", "fdk" or a volume), order ("angular"), tol (0 = no residual test),
     seed, holdout_every (None = gr's), oracle (None = score sweeps when a ground truth
     exists), progress (tqdm on stderr). Returns float32 [x, y, z] (and, under "heldout",
