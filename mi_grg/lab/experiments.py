@@ -64,7 +64,8 @@ TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.con
 CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve", "pdhg": "pdhg-curve"}
 #: Table 1's second row for the iterative classical methods: the paper's fixed sweep count
 #: (their default stops on held-out views, mi_grg.classical.heldout).
-FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"}, "asd-pocs": {"n_iter": 10, "stop": "none"}}
+FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"},
+              "asd-pocs": {"n_iter": 10, "stop": "none"}}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
 
 
@@ -388,7 +389,7 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
 
 # ---------------------------------------------------------------------------- curve methods
 def _curve_method(kind: str):
-    """``kind`` ("sart" / "asd-pocs") with a per-sweep log of (seconds, 3-D PSNR) written to
+    """``kind`` ("sart" / "asd-pocs" / "pdhg", a fixed setting) with a per-sweep log of (seconds, 3-D PSNR) written to
     OUT/progress_log.csv; the time spent scoring is excluded from the logged seconds."""
     def run(case, out_dir=None, progress: bool = True, **options):
         from mi_grg.classical import iterative, pdhg
