@@ -71,7 +71,7 @@ def _metrics(out, case, run):
 
 def test_table1_runs_and_data(serial):
     tmp, suite, out, res = serial
-    assert res["ran"] == 4 and res["failed"] == 0
+    assert res["ran"] == 6 and res["failed"] == 0      # fdk, sart, sart-fixed x 2 cases
     for case in ("shepp", "blob"):
         gt = np.load(out / "data" / case / "vol_gt.npy")
         for run in ("fdk", "sart"):
@@ -84,6 +84,10 @@ def test_table1_runs_and_data(serial):
             assert m["psnr_3d"] == pytest.approx(psnr, abs=1e-6)
             assert m["nVoxel"] == [16, 16, 16] and m["n_train_views"] == 4
     assert _metrics(out, "shepp", "sart")["options"]["n_iter"] == 2
+    # sart stops on held-out views; the fixed row runs the paper's sweeps
+    assert _metrics(out, "shepp", "sart")["method_info"]["protocol"] == "heldout"
+    fixed = _metrics(out, "shepp", "sart-fixed")["options"]
+    assert fixed["n_iter"] == 10 and fixed["stop"] == "none"
     # the data are what the suite says: same as simulating directly
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
@@ -100,14 +104,14 @@ def test_rerun_does_no_work(serial):
     tmp, suite, out, _ = serial
     before = {p: p.stat().st_mtime_ns for p in out.glob("table1/*/*/metrics.json")}
     res = run_experiment("table1", suite, out, jobs=1, progress=False)
-    assert res["ran"] == 0 and res["done before"] == 4 and res["failed"] == 0
+    assert res["ran"] == 0 and res["done before"] == 6 and res["failed"] == 0
     assert {p: p.stat().st_mtime_ns for p in out.glob("table1/*/*/metrics.json")} == before
 
 
 def test_parallel_matches_serial_and_isolates_failure(serial, parallel):
     out1 = serial[2]
     suite, out2, res = parallel
-    assert res["ran"] == 5 and res["failed"] == 1
+    assert res["ran"] == 7 and res["failed"] == 1
     for case in ("shepp", "blob"):
         for run in ("fdk", "sart"):
             a, b = _metrics(out1, case, run), _metrics(out2, case, run)
@@ -185,11 +189,21 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     plan = run_experiment("table1", suite, out, dry_run=True)
     assert plan["todo"] == 1 and plan["runs"][0]["stale"] == ["tv_every"]
     md = write_report(out, tmp_path / "r.md").read_text()     # the report says so
-    assert "- table1: 1 r2 / gr run(s), differing in tv_every" in md
+    assert "- table1: 1 run(s), differing in tv_every" in md
     res = run_experiment("table1", suite, out, jobs=1, progress=False)
     assert res["ran"] == 1 and res["failed"] == 0
     assert stale_options(run_dir) == []
     assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
+
+
+def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
+    from mi_grg.lab.experiments import stale_keys
+    assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before
+    assert stale_keys({"method": "asd-pocs", "options": {},
+                       "method_info": {"protocol": "heldout"}}) == []
+    assert stale_keys({"method": "sart", "options": {"stop": "none", "n_iter": 10}}) == []
+    assert stale_keys({"method": "sart-curve", "options": {}}) == []
+    assert stale_keys({"method": "fdk", "options": {}}) == []
 
 
 def _table_row(md: str, section: str, name: str) -> list:
@@ -253,7 +267,7 @@ def test_summary_lines(tmp_path):
             _fake_run(out, "table1", case, method, "HO", method, psnr_3d=p, ssim_3d=0.9,
                       seconds={"fdk": 1.0, "r2": 100.0, "gr": 150.0}[method])
     lines = summary_lines(out)
-    assert len(lines) == 3
+    assert len(lines) == 4 and "No held-out-stopped classical runs" in lines[3]
     assert "best 3-D PSNR on 1 of 2 cases" in lines[0] and "a +1.00 dB" in lines[0]
     assert "+0.25 dB on average" in lines[0]           # mean of +1.0 and -0.5
     assert "b (R2-Gaussian (r2) ahead by 0.50 dB)" in lines[1]
@@ -268,6 +282,47 @@ def test_summary_lines(tmp_path):
     over = md[md.index("Only 2 of the 3"):]
     row = _table_row(over, "Only 2 of the 3", "GR-Gaussian (gr)")
     assert row[1:3] == ["31.75", "0.900"]              # mean of 31.0 and 32.5 over a, b
+
+
+def test_fair_margin_oracle_and_anytime_tables(tmp_path):
+    """gr's margin is taken against the held-out-stopped classical rows (and, separately,
+    the fixed ones); the oracle is shown beside them; the any-time table takes the best
+    point within each budget."""
+    from mi_grg.lab.report import DASH, anytime_table, classical_margin, oracle_rows
+    out = tmp_path / "res"
+    held = {"protocol": "heldout", "chosen": {"setting": {"alpha": 0.02}, "sweeps": 7},
+            "oracle": {"psnr_3d_best": 29.5, "best_sweep": 5, "gap_db": 0.5},
+            "oracle_seconds": 40.0}
+    for case, (asd, fixed, gr) in {"a": (29.0, 27.0, 31.0), "b": (30.0, 26.0, 30.5)}.items():
+        _fake_run(out, "table1", case, "fdk", "HO", "fdk", psnr_3d=20.0, ssim_3d=0.5)
+        _fake_run(out, "table1", case, "asd-pocs", "HO", "asd-pocs", psnr_3d=asd,
+                  ssim_3d=0.8, seconds=10.0, method_info=held)
+        _fake_run(out, "table1", case, "asd-pocs-fixed", "HO", "asd-pocs", psnr_3d=fixed,
+                  ssim_3d=0.8, seconds=5.0)
+        _fake_run(out, "table1", case, "gr", "HO", "gr", psnr_3d=gr, ssim_3d=0.9,
+                  seconds=100.0)
+    rows = load_runs(out)["table1"]
+    mg = classical_margin(rows)
+    assert [(c, m, round(d, 6)) for c, m, d in mg["heldout"]] == [("a", "asd-pocs", 2.0),
+                                                                  ("b", "asd-pocs", 0.5)]
+    assert [round(d, 6) for _, _, d in mg["fixed"]] == [4.0, 4.5]
+    line = summary_lines(out)[3]
+    assert "+1.25 dB on average over 2 case(s)" in line and "+4.25 dB" in line
+    h, b = oracle_rows(rows)
+    assert b[0] == ["a", "asd-pocs", "29.00", "alpha=0.02, 7 sweeps", "29.50 (5)", "0.50"]
+    h, b = anytime_table(rows)
+    assert h[2:] == ["best within 1 s", "best within 10 s", "best within 60 s",
+                     "best within 300 s"]
+    by = {(r[0], r[1]): r[2:] for r in b}
+    assert by[("a", "asd-pocs")] == [DASH, "29.00", "29.00", "29.00"]
+    assert by[("a", "asd-pocs-fixed")] == [DASH, "27.00", "27.00", "27.00"]
+    assert by[("a", "gr")] == [DASH, DASH, DASH, "31.00"]
+    _fake_run(out, "speed", "a", "fdk", "HO", "fdk", psnr_3d=20.0, ssim_3d=0.5)
+    md = write_report(out, tmp_path / "r.md").read_text()
+    assert "oracle" in md and "29.50 (5)" in md
+    # the speed plot of case a shows Table 1's held-out run beside the speed runs
+    assert "asd-pocs (held-out): point" in md and "| a | asd-pocs (held-out) |" in md
+    assert (tmp_path / "img" / "results" / "speed_a.png").is_file()
 
 
 def test_iteration_plot_and_replayed_stop(tmp_path):
@@ -329,7 +384,8 @@ def test_repo_suites_are_valid():
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
     t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
-    assert len(t1) == 5 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, r2, gr
+    assert len(t1) == 8 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
 

@@ -138,13 +138,13 @@ def test_contract_options_progress_and_errors(small_cone_geometry, rng, capsys):
     geo = small_cone_geometry
     case = Case(geometry=geo, train=rng.uniform(0, 1, geo.projection_shape).astype(np.float32))
     for fn in (reconstruct_sart, reconstruct_asd_pocs):
-        vol = fn(case, n_iter=2, progress=False)
+        vol = fn(case, n_iter=2, stop="none", progress=False)
         assert vol.dtype == np.float32 and vol.shape == geo.nVoxel
         assert np.all(np.isfinite(vol)) and vol.min() >= 0
         with pytest.raises(TypeError, match="lmbda"):
             fn(case, lmbda=1.0)
     capsys.readouterr()
-    reconstruct_sart(case, n_iter=2, progress=True)
+    reconstruct_sart(case, n_iter=2, stop="none", progress=True)
     err = capsys.readouterr().err
     assert "SART" in err and "2/2" in err and "residual" in err
     init = np.full(geo.nVoxel, 0.5, np.float32)

@@ -43,3 +43,14 @@ class Case:
         if len(self.test_angles) == 0:
             raise ValueError("this case has no test views")
         return self.geometry.with_angles(self.test_angles)
+
+
+def holdout_split(n_views: int, holdout_every: int) -> tuple:
+    """(fit, held) view indices: every ``holdout_every``-th view (0, n, 2n, ...) is held out
+    for decisions (early stopping, choosing a setting) and never fitted while it decides;
+    0 holds out none. The one formula gr, r2 and the classical methods share."""
+    n, every = int(n_views), int(holdout_every)
+    if every < 0:
+        raise ValueError(f"holdout_every must be >= 0 (0: no held-out views), got {every}")
+    held = (np.arange(n) % every == 0) if every else np.zeros(n, bool)
+    return np.flatnonzero(~held), np.flatnonzero(held)

@@ -23,10 +23,11 @@ def register_experiment_methods(extra: dict | None = None) -> None:
 
 
 def _curve_method(kind: str):
-    """``kind`` ("sart" / "asd-pocs") with a per-sweep log of (seconds, 3-D PSNR) written to
-    OUT/progress_log.csv; the time spent scoring is excluded from the logged seconds."""
+    """``kind`` ("sart" / "asd-pocs" / "pdhg", a fixed setting) with a per-sweep log of
+    (seconds, 3-D PSNR) written to OUT/progress_log.csv; the time spent scoring is excluded
+    from the logged seconds."""
     def run(case, out_dir=None, progress: bool = True, **options):
-        from mi_grg.classical import iterative
+        from mi_grg.classical import iterative, pdhg
         from mi_grg.evaluation.metrics import psnr_3d
         rows, spent = [], [0.0]
         t0 = time.perf_counter()
@@ -39,7 +40,7 @@ def _curve_method(kind: str):
             rows.append(row)
             spent[0] += time.perf_counter() - t
 
-        func = iterative.sart if kind == "sart" else iterative.asd_pocs
+        func = {"sart": iterative.sart, "asd-pocs": iterative.asd_pocs, "pdhg": pdhg.pdhg}[kind]
         vol = func(case.train, case.geometry, callback=callback, progress=progress, **options)
         if out_dir is not None:
             Path(out_dir).mkdir(parents=True, exist_ok=True)

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mi_grg.lab.curves import register_experiment_methods
-from mi_grg.lab.suite import (ALL_METHODS, CURVE_METHODS, EXPERIMENTS, NOSTOP_DROP, TRAINED,
-                              CaseSpec, Suite)
+from mi_grg.lab.suite import (ALL_METHODS, CURVE_METHODS, EXPERIMENTS, FIXED_ROWS,
+                              NOSTOP_DROP, TRAINED, CaseSpec, Suite)
 
 
 @dataclass
@@ -120,6 +120,9 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
         if name == "table1":
             for m in ecfg.get("methods") or ALL_METHODS:
                 add(case, m, m, _opts(suite, m))
+                if m in FIXED_ROWS:
+                    add(case, f"{m}-fixed", m, _opts(suite, m, **FIXED_ROWS[m]),
+                        f"{m} (fixed {FIXED_ROWS[m]['n_iter']} sweeps)")
         elif name == "table2":
             for run, m, o, label in table2_variants():
                 add(case, run, m, _opts(suite, m, **o), label)

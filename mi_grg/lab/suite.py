@@ -15,13 +15,17 @@ EXPERIMENT_KEYS = {"table1": ("methods", "cases"), "table2": ("cases",),
                    "iterations": ("methods", "log_3d_every", "cases"),
                    "speed": ("methods", "cases"), "views": ("views", "methods", "cases"),
                    "seeds": ("seeds", "methods", "cases")}
-ALL_METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
+ALL_METHODS = ("fdk", "sart", "asd-pocs", "pdhg", "r2", "gr")
 CATEGORIES = {"HO": "human organs / organ-like", "BS": "biological specimens",
               "AO": "artificial objects"}
 CASE_FIELDS = ("name", "category", "source", "views", "test_views", "n", "det", "mode",
                "noise", "seed")
 TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.config.TrainConfig
-CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve"}
+CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve", "pdhg": "pdhg-curve"}
+#: Table 1's second row for the iterative classical methods: the paper's fixed sweep count
+#: (their default stops on held-out views, mi_grg.classical.heldout).
+FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"},
+              "asd-pocs": {"n_iter": 10, "stop": "none"}}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
 
 

@@ -273,7 +273,12 @@ def stale_keys(m: dict) -> list:
     """Training options of a finished r2/gr run (its metrics.json, read into ``m``) whose
     recorded values differ from what this code resolves the run's options to (a default
     changed since it ran; a field in ``ADDED_LATER`` that the record lacks counts as its old
-    value); [] if none differ or the run is not a training run."""
+    value); [] if none differ or the run is not a training run. An iterative classical run
+    (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]."""
+    if (m.get("method") in ("sart", "asd-pocs", "pdhg")
+            and (m.get("options") or {}).get("stop", "heldout") == "heldout"
+            and (m.get("method_info") or {}).get("protocol") != "heldout"):
+        return ["stop"]     # ran a fixed sweep count before held-out stopping was the default
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return []

@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
-from mi_grg.data.case import Case
+from mi_grg.data.case import Case, holdout_split
 from mi_grg.training.checkpoint import CHECKPOINT_NAME, TrainState, load_checkpoint, save_checkpoint
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
@@ -403,11 +403,10 @@ class Trainer:
         """(fitting views, held-out views) as index arrays: every ``holdout_every``-th view
         is held out for early stopping and never trained on (0: none). They are used by
         ``_heldout_psnr`` (in ``_evaluate``) and, after an early stop, ``_refit``."""
-        n, every = self.case.geometry.n_views, self.cfg.holdout_every
-        held = (np.arange(n) % every == 0) if every else np.zeros(n, bool)
-        if held.all():
+        fit, held = holdout_split(self.case.geometry.n_views, self.cfg.holdout_every)
+        if len(fit) == 0:
             raise ValueError("holdout_every leaves no training views")
-        return np.flatnonzero(~held), np.flatnonzero(held)
+        return fit, held
 
     def _heldout_psnr(self, raw) -> float | None:
         """Mean PSNR of the held-out views' projections of ``raw`` (None without any)."""
