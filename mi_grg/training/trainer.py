@@ -34,6 +34,7 @@ import numpy as np
 from mi_grg.data.case import Case
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
+from mi_grg.training.views import ViewProtocol, stop_from
 from mi_grg.core.gaussians import Gaussians
 
 # The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
@@ -275,12 +276,12 @@ class Trainer:
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         sched = _scaled(cfg, self.iterations)
         self.sched = sched
-        # Views: hold out every n-th one for early stopping (never trained on).
+        # Views (issue 26): held out for the stop rule's decisions, trained once they are over.
         n = geo.n_views
-        held = (np.arange(n) % cfg.holdout_every == 0) if cfg.holdout_every else np.zeros(n, bool)
-        if held.all():
-            raise ValueError("holdout_every leaves no training views")
-        self.fit_idx, self.held_idx = np.flatnonzero(~held), np.flatnonzero(held)
+        # (the research rule monitor_3d judges the ground truth: the views stay held out)
+        self.views = ViewProtocol(n, cfg.holdout_every, 1.0 if cfg.monitor_3d else
+                                  cfg.holdout_until, self.iterations, sched["eval_every"])
+        self.fit_idx, self.held_idx = self.views.fit, self.views.held
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(n)]
         # The config's window and cap are the paper's; this run's depend on its length and grid.
@@ -421,9 +422,10 @@ class Trainer:
                    dynamic_ncols=True, mininterval=1.0)
         last_psnr = None
         loss_value = float("nan")
-        while st.iteration < self.iterations and st.stopped_by is None:
+        stop = stop_from(st.stopper)   # views: the stop rule's verdict decides the view sets
+        while st.iteration < self.views.end(stop) and st.stopped_by is None:
             it = st.iteration + 1
-            view = int(self.rng.choice(self.fit_idx))
+            view = int(self.rng.choice(self.views.train_views(it, stop)))   # views
             g = Gaussians.from_raw(raw)
             ds = self._density_scale
             n = len(g)
@@ -476,7 +478,8 @@ class Trainer:
                 row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
                                                self.case.vol_gt))
                 t_start += time.perf_counter() - t3
-            if is_eval:
+            # views: evaluate the held-out views only while none of them has been trained
+            if is_eval and (cfg.monitor_3d or self.views.decides(it, stop)):
                 last_psnr = self._heldout_psnr(raw)
                 row["heldout_psnr"] = last_psnr
                 watched = row.get("psnr_3d") if cfg.monitor_3d else last_psnr
@@ -490,7 +493,14 @@ class Trainer:
                         ds = self._density_scale
                         st.kept_density_scale = None if ds is None else mi.Float(ds)
                     elif verdict == "stop":
-                        st.stopped_by = self.stopper.reason
+                        stop = stop_from(self.stopper.state())
+                        if self.views.end(stop) == it:
+                            st.stopped_by = self.stopper.reason
+                        else:   # views: go on from the kept state, on every view
+                            raw = {k: dr.detach(v) for k, v in st.kept_raw.items()}
+                            for v in raw.values():
+                                dr.enable_grad(v)
+                            st.raw, self._density_scale = raw, st.kept_density_scale
                 st.stopper = self.stopper.state()
             st.log.append(row)
             bar.update(1)
@@ -504,14 +514,23 @@ class Trainer:
                 save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer,
                                 self.densifier, cfg)
         bar.close()
+        if st.stopped_by is None and stop is not None and st.iteration >= self.views.end(stop):
+            st.stopped_by = (f"{self.stopper.reason}; then {self.views.after_stop(stop[1])} "
+                             f"iterations on every view from the state of iteration {stop[1]}")
         if st.stopped_by is None:
             st.stopped_by = (f"iteration budget ({self.iterations}) reached"
                              if st.iteration >= self.iterations else "interrupted")
-        if st.kept_raw is not None:
+        returned = st.iteration
+        if self.views.joined(st.iteration, stop):   # views: the last state, trained on all
+            final, self.final_density_scale = st.raw, self._density_scale
+        elif st.kept_raw is not None:
             final, self.final_density_scale = st.kept_raw, st.kept_density_scale
+            returned = self.stopper.kept_iteration
         else:
             final, self.final_density_scale = st.raw, self._density_scale
-        if cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by:
+        if (cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by
+                and not self.views.joined(st.iteration, stop)):   # views: trained on all
+
             final = self._refit(final, cfg.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
@@ -522,7 +541,9 @@ class Trainer:
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds, "schedule": self.sched,
                    "max_gaussians": self.densifier.config.max_count,
-                   "held_out_views": self.held_idx.tolist(), "init": self.init_info}
+                   "held_out_views": self.held_idx.tolist(), "init": self.init_info,
+                   "views": self.views.record(st.iteration, stop, self.stopper.history,
+                                              self.stopper.reason, returned)}
         if self.out is not None:
             save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)
             write_log(self.out, st.log)
