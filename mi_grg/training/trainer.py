@@ -547,8 +547,7 @@ class Trainer:
         if self.out is not None:
             save_checkpoint(self.out / "checkpoint.npz", st, self.optimizer, self.densifier, cfg)
             write_log(self.out, st.log)
-            plot_log(self.out / "train_log.png", st.log, summary["kept_iteration"]
-                     if summary["kept_iteration"] > 0 else None)
+            plot_log(self.out / "train_log.png", st.log, returned)   # views: the returned state
             g = Gaussians.from_raw(final)
             g.save_npz(self.out / "gaussians.npz")
             from mi_grg.data.ply import save_ply
