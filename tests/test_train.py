@@ -42,8 +42,9 @@ def test_gr_beats_fdk_and_sart_clearly(tmp_path):
 
 
 def test_outputs_log_and_plot(tiny_case, tmp_path):
+    # held out all run (holdout_until 1): the held-out views are evaluated at the end
     _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=30,
-                              progress=False, **TINY)
+                              holdout_until=1.0, progress=False, **TINY)
     for name in ("vol_pred.npy", "metrics.json", "slices.png", "gaussians.npz",
                  "gaussians.ply", "train_log.csv", "train_log.png", "checkpoint.npz"):
         assert (tmp_path / name).stat().st_size > 0, name
@@ -187,8 +188,11 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     # 750 iterations: evaluations every 125; states are judged only after densification
     # ends (375), so 375 is the first candidate (the best), 500 lies 0.25 % below it
     # (within the 0.5 % margin) and the drop at 625 stops the run.
+    # views held out all run (holdout_until 1): the stop returns the kept state itself
+    # (the default protocol goes on from it: test_views.py)
     t = Trainer(tiny_case, make_config("gr", iterations=750, stop_patience=1,
-                                       keep_state=keep, **TINY), progress=False)
+                                       keep_state=keep, holdout_until=1.0, **TINY),
+                progress=False)
     scores = iter([20.0, 20.0, 20.0, 19.95, 18.0, 18.0])
     monkeypatch.setattr(t, "_heldout_psnr", lambda raw: next(scores))
     seen = {}

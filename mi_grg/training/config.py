@@ -40,7 +40,7 @@ PRESETS = {
 # from before they existed: a finished run whose recorded config lacks one of them was
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
-ADDED_LATER = {"rebuild_keeps_field": False}
+ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0}
 
 
 @dataclass
@@ -107,6 +107,9 @@ class TrainConfig:
     lr_final_ratio: float = 0.1
     # --- early stopping without ground truth
     holdout_every: int = 8         # hold out every n-th training view; 0: none
+    holdout_until: float = 0.75    # ... for this fraction of the iterations (the stop rule
+                                   # decides only then), then train on every view; 1: held
+                                   # out all run (before issue 26; mi_grg.training.views)
     eval_every: int = 500
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row
@@ -141,6 +144,9 @@ class TrainConfig:
             raise ConfigError("lr_final_ratio must be in (0, 1]")
         if self.n_points < 1:
             raise ConfigError("n_points must be >= 1")
+        if not 0.0 <= self.holdout_until <= 1.0:
+            raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
+                              f"{self.holdout_until}")
         if self.keep_state not in KEEP_STATES:
             raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                               f"got {self.keep_state!r}")

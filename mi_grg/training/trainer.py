@@ -28,10 +28,11 @@ import mitsuba as mi
 import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
-from mi_grg.data.case import Case, holdout_split
+from mi_grg.data.case import Case
 from mi_grg.training.checkpoint import CHECKPOINT_NAME, TrainState, load_checkpoint, save_checkpoint
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
+from mi_grg.training.views import ViewProtocol, stop_from
 
 # The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
 # we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
@@ -121,7 +122,12 @@ class Trainer:
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         sched = _scaled(cfg, self.iterations)
         self.sched = sched
-        self.fit_idx, self.held_idx = self._split_views()
+        # Views (issue 26): held out while the stop rule decides, trained once it is done
+        # (the research rule monitor_3d judges the ground truth: the views stay held out).
+        self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
+                                  1.0 if cfg.monitor_3d else cfg.holdout_until,
+                                  self.iterations, sched["eval_every"])
+        self.fit_idx, self.held_idx = self.views.fit, self.views.held
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(geo.n_views)]
         # The config's window and cap are the paper's; this run's depend on its length and grid.
@@ -243,7 +249,9 @@ class Trainer:
                    desc=f"train ({'graph' if self.uses_graph else 'no graph'})",
                    dynamic_ncols=True, mininterval=1.0)
         last_psnr = None
-        while st.iteration < self.iterations and st.stopped_by is None:
+        # The stop rule's verdict (restored on resume) decides the view sets and the end.
+        self._stop = stop_from(self.stopper.state_dict())
+        while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
             it = st.iteration + 1
             raw, loss_value = self._step(it, raw)
             if self.densifier.is_densify_iteration(it):
@@ -251,7 +259,7 @@ class Trainer:
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            self._evaluate(it, raw, row)
+            raw = self._evaluate(it, raw, row)
             last_psnr = row.get("heldout_psnr", last_psnr)
             st.log.append(row)
             bar.update(1)
@@ -266,7 +274,7 @@ class Trainer:
         return self._finish()
 
     def _step(self, it: int, raw: dict):
-        """One iteration: a random fitting view's projection loss (+ TV on a random block
+        """One iteration: a random training view's (``views.train_views``) projection loss (+ TV on a random block
         every ``tv_every``-th iteration, + the graph Laplacian), backward, densification
         statistics, Adam. Returns (new raw, loss value). Random draws, in this order: the
         view, then the TV block's corner."""
@@ -274,7 +282,7 @@ class Trainer:
         from mi_grg.training.losses import projection_loss, tv_3d
         cfg, geo = self.cfg, self.case.geometry
         nv, nu = geo.nDetector
-        view = int(self.rng.choice(self.fit_idx))
+        view = int(self.rng.choice(self.views.train_views(it, self._stop)))
         g = Gaussians.from_raw(raw)
         ds = self._density_scale
         n = len(g)
@@ -322,12 +330,14 @@ class Trainer:
             raw = carry_density_scale(raw, old_scale, self._density_scale, info["source"])
         return raw
 
-    def _evaluate(self, it: int, raw: dict, row: dict) -> None:
+    def _evaluate(self, it: int, raw: dict, row: dict) -> dict:
         """Logging and early stopping at this iteration: the 3-D PSNR (research logging,
         when there is a ground truth and it is due) and, every ``eval_every`` iterations
-        and at the last, the held-out views' PSNR, which the stopper judges once
-        densification has ended (``monitor_3d``: the 3-D PSNR instead). Fills ``row``
-        (psnr_3d, heldout_psnr) and, on a stop, the state's ``stopped_by``."""
+        and at the last while the held-out views decide (``views.decides``), their PSNR,
+        which the stopper judges once densification has ended (``monitor_3d``: the 3-D
+        PSNR instead). Fills ``row`` (psnr_3d, heldout_psnr). On a stop: the state's
+        ``stopped_by`` when the run ends here, else (issue 26) the kept state, from which
+        training goes on on every view. Returns the state to continue from."""
         cfg, st = self.cfg, self.state
         is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
         want_3d = self.case.vol_gt is not None and (
@@ -340,8 +350,9 @@ class Trainer:
             row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
                                            self.case.vol_gt))
             self._t_start += time.perf_counter() - t3
-        if not is_eval:
-            return
+        # A held-out view is judged only while none of them has been trained on.
+        if not is_eval or not (cfg.monitor_3d or self.views.decides(it, self._stop)):
+            return raw
         row["heldout_psnr"] = self._heldout_psnr(raw)
         watched = row.get("psnr_3d") if cfg.monitor_3d else row["heldout_psnr"]
         # Densification reshapes the model; judge (and keep) states only after it.
@@ -354,7 +365,15 @@ class Trainer:
                 ds = self._density_scale
                 st.kept_density_scale = None if ds is None else mi.Float(ds)
             elif verdict == "stop":
-                st.stopped_by = self.stopper.reason
+                self._stop = stop_from(self.stopper.state_dict())
+                if self.views.end(self._stop) == it:
+                    st.stopped_by = self.stopper.reason
+                else:   # go on from the kept state, on every view
+                    raw = {k: dr.detach(v) for k, v in st.kept_raw.items()}
+                    for v in raw.values():
+                        dr.enable_grad(v)
+                    st.raw, self._density_scale = raw, st.kept_density_scale
+        return raw
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint_path is not None:
@@ -362,18 +381,29 @@ class Trainer:
                             self.stopper, self.cfg)
 
     def _finish(self) -> dict:
-        """Why the run ended, the state to return (the kept one, refitted on all views when
+        """Why the run ended, the state to return (the last one once the held-out views
+        have joined training; else the kept one, refitted on all views when
         ``refit_iterations``), the summary; with an output folder, the final checkpoint,
         train_log.csv / .png and the Gaussians (.npz, .ply)."""
-        cfg, st = self.cfg, self.state
+        cfg, st, stop = self.cfg, self.state, self._stop
+        if st.stopped_by is None and stop is not None and st.iteration >= self.views.end(stop):
+            st.stopped_by = (f"{self.stopper.reason}; then "
+                             f"{self.views.after_stop(stop.kept_iteration)} iterations on "
+                             f"every view from the state of iteration {stop.kept_iteration}")
         if st.stopped_by is None:
             st.stopped_by = (f"iteration budget ({self.iterations}) reached"
                              if st.iteration >= self.iterations else "interrupted")
-        if st.kept_raw is not None:
+        joined = self.views.joined(st.iteration, stop)
+        returned = st.iteration
+        if joined:      # the last state, trained on every view
+            final, self.final_density_scale = st.raw, self._density_scale
+        elif st.kept_raw is not None:
             final, self.final_density_scale = st.kept_raw, st.kept_density_scale
+            returned = self.stopper.kept_iteration
         else:
             final, self.final_density_scale = st.raw, self._density_scale
-        if cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by:
+        if (cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by
+                and not joined):
             final = self._refit(final, cfg.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
@@ -384,30 +414,22 @@ class Trainer:
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds, "schedule": self.sched,
                    "max_gaussians": self.densifier.config.max_count,
-                   "held_out_views": self.held_idx.tolist(), "init": self.init_info}
+                   "held_out_views": self.held_idx.tolist(), "init": self.init_info,
+                   "views": self.views.record(st.iteration, stop, self.stopper.history,
+                                              self.stopper.reason, returned)}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
             from mi_grg.evaluation.plotting import plot_log
             from mi_grg.training.log import write_log
             self._save_checkpoint()
             write_log(self.out / "train_log.csv", st.log)
-            kept = summary["kept_iteration"]
-            plot_log(self.out / "train_log.png", st.log, kept if kept > 0 else None)
+            plot_log(self.out / "train_log.png", st.log, returned)
             g = Gaussians.from_raw(final)
             g.save_npz(self.out / "gaussians.npz")
             save_ply(g, self.out / "gaussians.ply")
         return summary
 
     # ------------------------------------------------------------------ held-out views
-    def _split_views(self):
-        """(fitting views, held-out views) as index arrays: every ``holdout_every``-th view
-        is held out for early stopping and never trained on (0: none). They are used by
-        ``_heldout_psnr`` (in ``_evaluate``) and, after an early stop, ``_refit``."""
-        fit, held = holdout_split(self.case.geometry.n_views, self.cfg.holdout_every)
-        if len(fit) == 0:
-            raise ValueError("holdout_every leaves no training views")
-        return fit, held
-
     def _heldout_psnr(self, raw) -> float | None:
         """Mean PSNR of the held-out views' projections of ``raw`` (None without any)."""
         if len(self.held_idx) == 0:

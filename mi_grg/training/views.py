@@ -1,0 +1,156 @@
+"""Which training views decide and which ones train, at each iteration (issue 26).
+
+Every ``holdout_every``-th training view is held out: its projection error is the early-stop
+rule's signal (``mi_grg.training.early_stop``). With sparse views every view is also worth
+training on (25 noisy views at 64^3: training on all of them scores +0.3 to +0.7 dB), so the
+held-out views join training once no decision needs them any more:
+
+- the decision window runs up to ``window_end``, the last evaluation at or before
+  ``holdout_until`` x the iteration budget. The stop rule judges (and picks the state to
+  keep) only on evaluations inside it; the held-out views are never trained on before
+  ``window_end``.
+- window closed without a stop: every view trains from ``window_end + 1`` to the budget, and
+  the run returns its last state.
+- the rule stopped at iteration s, keeping the state of iteration k <= s: training goes on
+  from the kept state on every view for ``after_stop(k)`` = k x (budget - window_end) /
+  window_end iterations (the share of all-view training a run that reaches the window's end
+  gets), numbered s + 1, s + 2, ...; the run returns its last state. The run ends by
+  ``s + after_stop(k) <= budget``: the protocol never adds iterations.
+
+Honesty: a view's error is never used for a decision once that view has been trained on
+(``test_views.py`` checks this over random schedules), and the ground truth never decides.
+
+``holdout_until = 1`` is the behaviour from before: held out for the whole run, the kept
+state returned. Functions of the run's settings and of the stop (``Stop``) only, so that a
+resumed run rebuilds the same protocol from its checkpointed stopper state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from mi_grg.data.case import holdout_split
+
+
+class Stop(NamedTuple):
+    """Where the stop rule fired (``iteration``) and the state it kept (``kept_iteration``)."""
+    iteration: int
+    kept_iteration: int
+
+
+def stop_from(stopper_state: dict | None) -> Stop | None:
+    """The ``Stop`` recorded in an ``EarlyStopper.state_dict()``; None if it never fired."""
+    if not stopper_state or stopper_state.get("reason") is None:
+        return None
+    return Stop(int(stopper_state["history"][-1][0]), int(stopper_state["kept_iteration"]))
+
+
+@dataclass(frozen=True)
+class ViewProtocol:
+    """The view schedule of one run (see the module docstring).
+
+    n_views: training views; holdout_every: hold out views 0, n, 2n, ... (0: none);
+    holdout_until: fraction of ``iterations`` during which they stay held out, in [0, 1];
+    iterations: the run's budget; eval_every: interval between held-out evaluations."""
+
+    n_views: int
+    holdout_every: int
+    holdout_until: float
+    iterations: int
+    eval_every: int
+
+    def __post_init__(self):
+        if not 0.0 <= self.holdout_until <= 1.0:
+            raise ValueError(f"holdout_until must be a fraction in [0, 1], got "
+                             f"{self.holdout_until}")
+        if self.n_views < 1 or self.iterations < 1 or self.eval_every < 1:
+            raise ValueError("n_views, iterations and eval_every must be >= 1")
+        if len(self.held) == self.n_views:
+            raise ValueError("holdout_every leaves no training views")
+
+    # ------------------------------------------------------------------ the view sets
+    @property
+    def held(self) -> np.ndarray:
+        """Views held out for decisions, [k] int (``mi_grg.data.case.holdout_split``)."""
+        return holdout_split(self.n_views, self.holdout_every)[1]
+
+    @property
+    def fit(self) -> np.ndarray:
+        """Views trained while the held-out ones decide, [n_views - k] int."""
+        return holdout_split(self.n_views, self.holdout_every)[0]
+
+    @property
+    def window_end(self) -> int:
+        """Last iteration whose evaluation may decide (0: none can)."""
+        if len(self.held) == 0:
+            return 0
+        if self.holdout_until >= 1.0:
+            return self.iterations
+        # a small tolerance so that 0.75 x 1500 is 1125, not 1124.999...
+        limit = int(self.holdout_until * self.iterations + 1e-9)
+        return limit // self.eval_every * self.eval_every
+
+    def after_stop(self, kept_iteration: int) -> int:
+        """Iterations on every view after the stop rule fired, keeping ``kept_iteration``."""
+        w = self.window_end
+        if w == 0 or w >= self.iterations:
+            return 0
+        return int(round(kept_iteration * (self.iterations - w) / w))
+
+    # ------------------------------------------------------------------ per iteration
+    def joined(self, iteration: int, stop: Stop | None = None) -> bool:
+        """Whether the held-out views have joined training by the step of ``iteration``
+        (False when none are held out)."""
+        if len(self.held) == 0:
+            return False
+        if stop is not None:
+            return self.after_stop(stop.kept_iteration) > 0 and iteration > stop.iteration
+        return iteration > self.window_end
+
+    def train_views(self, iteration: int, stop: Stop | None = None) -> np.ndarray:
+        """Views the training step of ``iteration`` draws from."""
+        if self.joined(iteration, stop):
+            return np.arange(self.n_views, dtype=np.int64)
+        return self.fit
+
+    def decides(self, iteration: int, stop: Stop | None = None) -> bool:
+        """Whether the held-out evaluation after the step of ``iteration`` may be made and
+        judged (no held-out view trained yet, the rule not yet fired)."""
+        return len(self.held) > 0 and stop is None and iteration <= self.window_end
+
+    def end(self, stop: Stop | None = None) -> int:
+        """The run's last iteration."""
+        if stop is None:
+            return self.iterations
+        return stop.iteration + self.after_stop(stop.kept_iteration)
+
+    # ------------------------------------------------------------------ the record
+    def record(self, iteration: int, stop: Stop | None, decisions: list,
+               reason: str | None = None, returned_iteration: int | None = None) -> dict:
+        """What decided what, for metrics.json: ``iteration`` is the last one run,
+        ``decisions`` the stop rule's judged (iteration, held-out value) pairs,
+        ``returned_iteration`` the iteration whose state the run returns."""
+        held = self.held.tolist()
+        joined = self.joined(iteration, stop)
+        join_at = None
+        if joined:
+            join_at = (stop.iteration if stop is not None else self.window_end) + 1
+        trained = list(range(self.n_views)) if joined else self.fit.tolist()
+        return {
+            "holdout_until": self.holdout_until,
+            "held_out_views": held,
+            "decision_window_end": self.window_end if held else 0,
+            # the stop rule's evaluations: each on the held-out views, none of them trained
+            "decisions": [{"iteration": int(i), "heldout_psnr": float(v),
+                           "views": held} for i, v in decisions],
+            "stop": None if stop is None else {"iteration": stop.iteration,
+                                               "kept_iteration": stop.kept_iteration,
+                                               "reason": reason},
+            "held_out_views_trained_from": join_at,
+            "iterations_on_all_views": (iteration - join_at + 1 if join_at
+                                        else 0 if held else iteration),
+            "returned_state_iteration": returned_iteration,
+            "trained_on_views": trained,
+        }

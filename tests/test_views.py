@@ -1,0 +1,212 @@
+"""The view protocol (issue 26): held-out views decide, then every view trains."""
+import json
+
+import numpy as np
+import pytest
+
+import mi_grg
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+from mi_grg.training.config import ADDED_LATER, ConfigError, make_config
+from mi_grg.training.trainer import Trainer
+from mi_grg.training.views import Stop, ViewProtocol, stop_from
+
+TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=1000,
+            holdout_every=3)
+
+
+def walk(p: ViewProtocol, stop: Stop | None):
+    """Replay a schedule as the trainer runs it: (views trained before or at each
+    iteration, [(iteration, decision views)]) up to the protocol's end."""
+    trained, seen, decisions = [], set(), []
+    for it in range(1, p.end(stop) + 1):
+        # the stop fires at an evaluation: before it the run does not know of it
+        known = stop if stop is not None and it > stop.iteration else None
+        seen |= set(p.train_views(it, known).tolist())
+        trained.append(set(seen))
+        if (it % p.eval_every == 0 or it == p.iterations) and p.decides(it, known):
+            decisions.append((it, set(p.held.tolist())))
+    return trained, decisions
+
+
+def random_protocols(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        iterations = int(rng.integers(1, 250))
+        p = ViewProtocol(n_views=int(rng.integers(2, 30)), holdout_every=int(rng.choice([0, 2, 3, 8])),
+                         holdout_until=float(rng.choice([0.0, 1.0, rng.random()])),
+                         iterations=iterations, eval_every=int(rng.integers(1, 60)))
+        # a stop at any evaluation the window allows, keeping any earlier evaluation
+        evals = [i for i in range(p.eval_every, p.window_end + 1, p.eval_every)]
+        stop = None
+        if evals and rng.random() < 0.6:
+            s = int(rng.choice(evals))
+            stop = Stop(s, int(rng.choice([e for e in evals if e <= s])))
+        yield p, stop
+
+
+def test_no_decision_uses_a_view_after_it_was_trained():
+    """The honesty property over 500 random schedules, with and without a stop."""
+    n_decisions = n_joined = 0
+    for p, stop in random_protocols(500):
+        trained, decisions = walk(p, stop)
+        for it, views in decisions:
+            assert not views & trained[it - 1], (p, stop, it)
+            n_decisions += 1
+        end = p.end(stop)
+        assert end <= p.iterations                    # the protocol never adds iterations
+        if stop is None:
+            assert end == p.iterations
+        if p.joined(end, stop):
+            n_joined += 1
+            assert trained[-1] == set(range(p.n_views))   # the result saw every view
+    assert n_decisions > 300 and n_joined > 100       # both branches were exercised
+
+
+def test_window_and_share_after_a_stop():
+    p = ViewProtocol(25, 8, 0.75, 1500, 125)
+    assert p.held.tolist() == [0, 8, 16, 24] and len(p.fit) == 21
+    assert p.window_end == 1125                      # 0.75 x 1500, an evaluation
+    assert ViewProtocol(25, 8, 0.75, 3000, 125).window_end == 2250
+    assert ViewProtocol(25, 8, 0.8, 1500, 125).window_end == 1125   # rounded down to one
+    assert p.decides(1125) and not p.decides(1250)
+    assert p.train_views(1125).tolist() == p.fit.tolist()
+    assert p.train_views(1126).tolist() == list(range(25))
+    # stopped at 1000 keeping 875: 875 x 375 / 1125 = 291.7 -> 292 more on every view
+    stop = Stop(1000, 875)
+    assert p.after_stop(875) == 292 and p.end(stop) == 1292
+    assert p.train_views(1000, stop).tolist() == p.fit.tolist()
+    assert len(p.train_views(1001, stop)) == 25 and not p.decides(1125, stop)
+
+
+def test_holdout_until_one_is_the_old_rule_and_holdout_every_zero_trains_all():
+    old = ViewProtocol(25, 8, 1.0, 1500, 125)
+    assert old.window_end == 1500 and old.decides(1500)
+    assert all(old.train_views(it).tolist() == old.fit.tolist() for it in (1, 1500))
+    assert old.after_stop(1000) == 0 and old.end(Stop(1250, 1125)) == 1250
+    assert not old.joined(1500)
+    none = ViewProtocol(25, 0, 0.75, 1500, 125)
+    assert len(none.held) == 0 and none.window_end == 0 and not none.decides(125)
+    assert none.train_views(1).tolist() == list(range(25))
+    with pytest.raises(ValueError, match="no training views"):
+        ViewProtocol(3, 1, 0.5, 10, 5)
+    with pytest.raises(ValueError, match="holdout_until"):
+        ViewProtocol(25, 8, 1.5, 10, 5)
+    with pytest.raises(ConfigError, match="holdout_until"):
+        make_config("gr", holdout_until=1.5)
+
+
+def test_stop_from_reads_the_stopper_state():
+    assert stop_from(None) is None and stop_from({"reason": None, "history": []}) is None
+    st = {"reason": "fell", "history": [[375, 20.0], [500, 19.0]], "kept_iteration": 375}
+    assert stop_from(st) == Stop(500, 375)
+
+
+def test_old_runs_read_as_held_out_all_run():
+    """A run recorded before the field existed held its views out all run (1.0), so with
+    today's default it is stale (its result would change), named by this key."""
+    from mi_grg.training.config import stale_keys
+    assert ADDED_LATER["holdout_until"] == 1.0
+    cfg = make_config("gr").to_dict()
+    del cfg["holdout_until"]
+    assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": cfg}}) == \
+        ["holdout_until"]
+    pinned = {**cfg, "holdout_until": 0.75}
+    assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": pinned}}) == []
+
+
+# ---------------------------------------------------------------------------- in training
+@pytest.fixture(scope="module")
+def tiny_case():
+    geo = default_geometry(n=16, det=24, views=6)
+    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
+
+
+def spy_views(t: Trainer, monkeypatch):
+    """Record (iteration, trained view) and (iteration, evaluated views) of a run."""
+    trained, evaluated = [], []
+    real_project = t._project
+    angles = list(np.asarray(t.case.geometry.angles))
+
+    def project(g, a, density_scale, means2d=None):
+        if means2d is not None:       # a training step projects one view with means2d
+            trained.append((t.state.iteration + 1, angles.index(float(np.asarray(a)[0]))))
+        return real_project(g, a, density_scale, means2d)
+    real_heldout = t._heldout_psnr
+
+    def heldout(raw):
+        evaluated.append((t.state.iteration, t.held_idx.tolist()))
+        return real_heldout(raw)
+    monkeypatch.setattr(t, "_project", project)
+    monkeypatch.setattr(t, "_heldout_psnr", heldout)
+    return trained, evaluated
+
+
+def test_training_run_records_the_views(tiny_case, monkeypatch, tmp_path):
+    """250 iterations, evaluations every 125, window 0.5 x 250 = 125: views 0 and 3 decide at
+    125 and train from 126; metrics.json says so."""
+    t = Trainer(tiny_case, make_config("gr", iterations=250, holdout_until=0.5, **TINY),
+                progress=False)
+    trained, evaluated = spy_views(t, monkeypatch)
+    info = t.run()
+    assert evaluated == [(125, [0, 3])]
+    assert {v for it, v in trained if it <= 125} <= {1, 2, 4, 5}
+    assert {v for it, v in trained if it > 125} == set(range(6))   # seed-fixed draw
+    assert len(trained) == 250
+    _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=250,
+                              holdout_until=0.5, progress=False, **TINY)
+    views = json.loads((tmp_path / "metrics.json").read_text())["method_info"]["views"]
+    assert views["held_out_views"] == [0, 3] and views["decision_window_end"] == 125
+    # densification ends at 125 here, so that evaluation is judged
+    assert [(d["iteration"], d["views"]) for d in views["decisions"]] == [(125, [0, 3])]
+    assert views["held_out_views_trained_from"] == 126
+    assert views["iterations_on_all_views"] == 125 and views["returned_state_iteration"] == 250
+    assert views["trained_on_views"] == list(range(6)) and views["stop"] is None
+
+
+def test_a_stop_goes_on_from_the_kept_state_on_every_view(tiny_case, monkeypatch):
+    """750 iterations, window 0.8 x 750 -> 500: judged at 375 (best) and 500 (a drop,
+    patience 1: stop). The state of 375 goes on for 375 x 250 / 500 = 188 iterations on
+    every view, and no held-out view is evaluated after it was trained."""
+    t = Trainer(tiny_case, make_config("gr", iterations=750, stop_patience=1,
+                                       holdout_until=0.8, **TINY), progress=False)
+    trained, evaluated = spy_views(t, monkeypatch)
+    scores = iter([20.0, 20.0, 20.0, 18.0])
+    real_heldout = t._heldout_psnr
+    monkeypatch.setattr(t, "_heldout_psnr", lambda raw: (real_heldout(raw), next(scores))[1])
+    seen, stepped = {}, {}
+    real_update, real_step = t.stopper.update, t.optimizer.step
+
+    def spy(it, value):
+        seen[it] = np.asarray(t.state.raw["raw_densities"]).copy()
+        return real_update(it, value)
+
+    def step(raw, *a, **k):
+        stepped[t.state.iteration + 1] = np.asarray(raw["raw_densities"]).copy()
+        return real_step(raw, *a, **k)
+    monkeypatch.setattr(t.stopper, "update", spy)
+    monkeypatch.setattr(t.optimizer, "step", step)
+    info = t.run()
+    assert [it for it, _ in evaluated] == [125, 250, 375, 500]
+    first = min(it for it, v in trained if v in (0, 3))
+    assert first > 500 and all(it < first for it, _ in evaluated)
+    v = info["views"]
+    assert v["stop"]["iteration"] == 500 and v["stop"]["kept_iteration"] == 375
+    assert info["iterations_run"] == 500 + 188 == v["returned_state_iteration"]
+    assert v["held_out_views_trained_from"] == 501 and v["iterations_on_all_views"] == 188
+    assert "then 188 iterations on every view" in info["stopped_by"]
+    # the continuation started from the kept state (375), not from the state of 500
+    np.testing.assert_array_equal(stepped[501], seen[375])
+    assert not np.array_equal(seen[375], seen[500])
+    assert not np.array_equal(np.asarray(t.state.raw["raw_densities"]), seen[375])
+
+
+def test_holdout_every_zero_still_trains_on_every_view(tiny_case, monkeypatch):
+    t = Trainer(tiny_case, make_config("gr", iterations=60, **{**TINY, "holdout_every": 0}),
+                progress=False)
+    trained, evaluated = spy_views(t, monkeypatch)
+    info = t.run()
+    assert len(trained) == 60 and {v for _, v in trained} == set(range(6))
+    assert evaluated == []
+    assert info["views"]["trained_on_views"] == list(range(6))
+    assert info["views"]["decisions"] == [] and info["views"]["held_out_views"] == []
