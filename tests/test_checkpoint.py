@@ -20,8 +20,9 @@ from mi_grg.training.trainer import Trainer
 #: 16^3 shepp (case below), OLD_OPTIONS, crashed after iteration 55; it holds iteration 50,
 #: a kept state, the stopper's first evaluation and the densifier's accumulators.
 OLD_CHECKPOINT = Path(__file__).parent / "data" / "checkpoint_42a14d5.npz"
+# holdout_until=1: the view protocol of 42a14d5 (held out all run; issue 26 came later)
 OLD_OPTIONS = dict(iterations=60, seed=5, n_points=120, max_gaussians=800, eval_every=100,
-                   checkpoint_every=25, holdout_every=3)
+                   checkpoint_every=25, holdout_every=3, holdout_until=1.0)
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +127,10 @@ def test_checkpoint_of_another_config_or_no_checkpoint_is_a_clear_error(tiny_cas
     shutil.copy(OLD_CHECKPOINT, tmp_path / "checkpoint.npz")
     cfg = make_config("gr", **{**OLD_OPTIONS, "graph_s": 0.5, "k": 5})
     with pytest.raises(ValueError, match=r"different config \(differs in \['graph_s', 'k'\]\)"):
+        Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
+    # today's default view protocol is not the one the checkpoint's run was made with
+    cfg = make_config("gr", **{**OLD_OPTIONS, "holdout_until": 0.75})
+    with pytest.raises(ValueError, match=r"differs in \['holdout_until'\]"):
         Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
     (tmp_path / "checkpoint.npz").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="cannot read checkpoint"):

@@ -197,7 +197,7 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
 
 
 def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
-    from mi_grg.lab.experiments import stale_keys
+    from mi_grg.training.config import stale_keys
     assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before
     assert stale_keys({"method": "asd-pocs", "options": {},
                        "method_info": {"protocol": "heldout"}}) == []

@@ -1,8 +1,9 @@
 """Every `mi-grg ...` line in the code blocks of README.md and docs/*.md runs as written.
 
-The cheap lines (simulate, reconstruct with a classical method, render) run in order in a
-temporary folder (with ``scenes/`` linked in, since the lines name it relative to the
-repository root); the expensive ones (training, experiment suites, the report over their
+The cheap lines (simulate, import, reconstruct with a classical method, render) of each page
+run in order in a temporary folder of their own (with ``scenes/`` linked in, since the lines name it relative to the
+repository root), together with the ``python docs/...`` lines that make their inputs; the
+expensive ones (training, experiment suites, the report over their
 results) are listed by name in ``PARSE_ONLY`` with the reason, and must at least parse:
 the subcommand, its options, the method and the files they name exist."""
 import re
@@ -24,14 +25,15 @@ PARSE_ONLY = {
 }
 
 
-def readme_lines() -> list:
-    """(file, argv) of every `mi-grg` command line in a fenced code block, in order."""
+def readme_lines(program: str = "mi-grg") -> list:
+    """(file, argv) of every command line of ``program`` in a fenced code block, in order
+    (lines that start the line; indented ones belong to diagrams)."""
     out = []
     for path in DOCS:
         blocks = re.findall(r"^```[^\n]*\n(.*?)^```", path.read_text(), re.M | re.S)
         for block in blocks:
             for line in block.replace("\\\n", " ").splitlines():
-                if line.strip().startswith("mi-grg "):
+                if line.startswith(program + " "):
                     argv = shlex.split(line, comments=True)[1:]
                     out.append((path.relative_to(ROOT).as_posix(), argv))
     return out
@@ -46,6 +48,8 @@ def parse_only_reason(argv):
 
 
 LINES = readme_lines()
+#: ``python docs/SCRIPT ...`` lines: they make the inputs of the lines after them.
+SCRIPT_LINES = [(f, a) for f, a in readme_lines("python") if a[0].startswith("docs/")]
 
 
 def test_the_readme_has_command_lines():
@@ -74,18 +78,30 @@ def test_every_line_parses(where, argv):
 
 
 def test_cheap_lines_run_as_written(tmp_path, monkeypatch):
-    """simulate / reconstruct fdk / render lines run in order and exit 0."""
+    """simulate / import / reconstruct fdk / render lines run in order and exit 0; each
+    page in a folder of its own, as a reader following that page would."""
+    import subprocess
+    import sys
     from mi_grg.cli import main
-    (tmp_path / "scenes").symlink_to(ROOT / "scenes")
-    monkeypatch.chdir(tmp_path)
     ran = []
-    for where, argv in LINES:
-        if parse_only_reason(argv):
-            continue
-        try:
-            rc = main(list(argv))
-        except SystemExit as e:    # argparse and explicit refusals
-            rc = e.code
-        assert rc == 0, f"{where}: `mi-grg {' '.join(argv)}` exited {rc}"
-        ran.append(argv[0])
-    assert {"simulate", "reconstruct", "render"} <= set(ran), ran
+    for page in dict.fromkeys(f for f, _ in LINES):
+        folder = tmp_path / page.replace("/", "_")
+        folder.mkdir()
+        (folder / "scenes").symlink_to(ROOT / "scenes")
+        monkeypatch.chdir(folder)
+        for where, argv in SCRIPT_LINES:
+            if where != page:
+                continue
+            r = subprocess.run([sys.executable, str(ROOT / argv[0]), *argv[1:]],
+                               capture_output=True, text=True)
+            assert r.returncode == 0, f"{where}: `python {' '.join(argv)}`: {r.stderr[-2000:]}"
+        for where, argv in LINES:
+            if where != page or parse_only_reason(argv):
+                continue
+            try:
+                rc = main(list(argv))
+            except SystemExit as e:    # argparse and explicit refusals
+                rc = e.code
+            assert rc == 0, f"{where}: `mi-grg {' '.join(argv)}` exited {rc}"
+            ran.append(argv[0])
+    assert {"simulate", "import", "reconstruct", "render"} <= set(ran), ran

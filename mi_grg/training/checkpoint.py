@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import TrainConfig, upgrade_config_dict
+from mi_grg.training.config import ADDED_LATER, TrainConfig, upgrade_config_dict
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -117,8 +117,10 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
         if "meta" not in f.files:
             raise ValueError(f"{path} is not a training checkpoint (no meta record)")
         meta = json.loads(bytes(f["meta"]).decode())
-        # Older checkpoints spell "automatic" as 0 for the fields that are None now.
-        used, want = upgrade_config_dict(meta["config"]), cfg.to_dict()
+        # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
+        # lack fields added since (their value then: ADDED_LATER).
+        used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
+        want = cfg.to_dict()
         if used != want:
             changed = sorted(k for k in set(used) | set(want) if used.get(k) != want.get(k))
             raise ValueError(f"checkpoint {path} was made with a different config "
