@@ -1,5 +1,5 @@
-"""Figures people would rather look at than read: orthogonal slice montages and the
-training log (loss, PSNR, Gaussian count per iteration)."""
+"""Figures people would rather look at than read: orthogonal slice montages, the
+training log (loss, PSNR, Gaussian count per iteration) and the path-traced cross-check."""
 from __future__ import annotations
 
 from pathlib import Path
