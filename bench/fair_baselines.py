@@ -48,7 +48,8 @@ def main(argv=None) -> int:
         print(markdown(result))
         return 0
     from mi_grg.data.dataset import load_case
-    from mi_grg.lab.experiments import load_suite, simulate_data
+    from mi_grg.lab.runner import simulate_data
+    from mi_grg.lab.suite import load_suite
     from mi_grg.methods import reconstruct
     suite = load_suite(args.suite)
     data_root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "fair_baselines"
