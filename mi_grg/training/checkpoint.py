@@ -11,7 +11,7 @@ File layout (one ``.npz``; the same as before this module existed, so older file
 load): ``raw__<key>`` / ``kept__<key>`` parameter arrays, ``kept_density_scale``,
 ``graph_positions`` [N, 3], ``adam_m__<group>`` / ``adam_v__<group>`` [N, C],
 ``dens_grad`` / ``dens_count`` [N] and ``meta`` (JSON: iteration, rng, log, stopper,
-stopped_by, seconds, config, adam_steps).
+stopped_by, seconds, config, adam_steps, time_plan).
 """
 from __future__ import annotations
 
@@ -42,6 +42,7 @@ class TrainState:
     graph_positions: object = None   # positions [N, 3] the current graph was built from
     stopped_by: str | None = None
     seconds: float = 0.0
+    time_plan: dict | None = None    # the plan of a time_budget run (mi_grg.training.budget)
 
 
 _RAW_TYPES = {"positions": "Point3f", "raw_scales": "Vector3f", "raw_rotations": "Vector4f",
@@ -98,7 +99,7 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
     stop = stopper.state_dict() if stopper.history else None
     meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
             "stopper": stop, "stopped_by": state.stopped_by,
-            "seconds": state.seconds, "config": cfg.to_dict(),
+            "seconds": state.seconds, "config": cfg.to_dict(), "time_plan": state.time_plan,
             "adam_steps": {n: st["step"] for n, st in opt.items()}}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     _atomic_savez(Path(path), **arrays)
@@ -145,4 +146,15 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
                       kept_raw=kept, kept_density_scale=kept_ds,
                       stopped_by=meta["stopped_by"], seconds=meta["seconds"],
-                      graph_positions=graph_pos)
+                      graph_positions=graph_pos, time_plan=meta.get("time_plan"))
+
+
+def checkpoint_time_plan(path) -> dict | None:
+    """The time plan recorded in a checkpoint (None: none, or not readable here; reading
+    the checkpoint itself reports what is wrong with it). A resumed run needs it before it
+    can build its schedule."""
+    try:
+        with np.load(path) as f:
+            return json.loads(bytes(f["meta"]).decode()).get("time_plan")
+    except (OSError, ValueError, KeyError):
+        return None

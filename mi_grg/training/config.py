@@ -10,8 +10,8 @@ Config files use Mitsuba's XML property syntax, so they read like the scene file
 
 Every key must be a field of ``TrainConfig`` (unknown or misspelled keys are an error, with
 a suggestion) and the tag must match the field's type. Fields that can be chosen
-automatically (``AUTO_FIELDS``) take ``value="none"`` (or are left out) for that. Command-line ``--option key=value``
-pairs override the file, which overrides the method preset, which overrides the defaults.
+automatically (``AUTO_FIELDS``) take ``value="none"`` (or are left out) for that, as does
+``time_budget`` for "no budget". Command-line ``--option key=value`` pairs override the file, which overrides the method preset, which overrides the defaults.
 Defaults are the GR-Gaussian paper's (Sec. 4.1.2) in R2-Gaussian's normalised units
 (volume in [-1, 1]^3).
 """
@@ -40,7 +40,7 @@ PRESETS = {
 # from before they existed: a finished run whose recorded config lacks one of them was
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
-ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0}
+ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None}
 
 
 @dataclass
@@ -123,12 +123,24 @@ class TrainConfig:
                                    # evaluation
     # --- bookkeeping
     checkpoint_every: int = 500
+    time_budget: float | None = None  # seconds for the whole training (De-Init to the
+                                   # returned state): the iteration count and schedule are
+                                   # planned from a probe of this machine's speed instead of
+                                   # iteration_rule (mi_grg.training.budget); None: no budget
 
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ConfigError(f"{f.name} must be finite, got {v}")
+        if self.time_budget is not None:
+            if not self.time_budget > 0:
+                raise ConfigError(f"time_budget must be > 0 seconds (or none: no budget), "
+                                  f"got {self.time_budget!r}")
+            if self.iterations is not None:
+                raise ConfigError(f"time_budget ({self.time_budget:g} s) plans the iteration "
+                                  f"count; iterations={self.iterations} would override it: "
+                                  "give one of them")
         for name in AUTO_FIELDS:
             v = getattr(self, name)
             if v is not None and not v > 0:
@@ -190,8 +202,8 @@ def _check_key(key: str) -> None:
 def _coerce(key: str, value):
     _check_key(key)
     kind = _base_type(_FIELDS[key])
-    if key in AUTO_FIELDS and (value is None or (isinstance(value, str)
-                                                 and value.strip().lower() in _NONE_WORDS)):
+    if "| None" in _FIELDS[key].type and (value is None or (
+            isinstance(value, str) and value.strip().lower() in _NONE_WORDS)):
         return None
     try:
         if kind == "bool":

@@ -29,7 +29,8 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
-from mi_grg.training.checkpoint import CHECKPOINT_NAME, TrainState, load_checkpoint, save_checkpoint
+from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
+                                        load_checkpoint, save_checkpoint)
 from mi_grg.training.config import TrainConfig, make_config
 from mi_grg.training.early_stop import EarlyStopper
 from mi_grg.training.views import ViewProtocol, stop_from
@@ -111,32 +112,26 @@ class Trainer:
 
     def __init__(self, case: Case, cfg: TrainConfig, out_dir=None, progress: bool = True,
                  resume: bool = False):
-        from mi_grg.training.densify import DensifyConfig, PGADensifier
-        from mi_grg.training.optim import Adam
+        t_begin = time.perf_counter()
         self.case, self.cfg, self.progress = case, cfg, progress
         self.out = Path(out_dir) if out_dir is not None else None
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
         geo = case.geometry
-        self.iterations = cfg.iterations if cfg.iterations is not None else iteration_rule(geo)
-        # The config's schedule is the paper's, for 30k iterations: scale it to this run.
-        sched = _scaled(cfg, self.iterations)
-        self.sched = sched
-        # Views (issue 26): held out while the stop rule decides, trained once it is done
-        # (the research rule monitor_3d judges the ground truth: the views stay held out).
-        self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
-                                  1.0 if cfg.monitor_3d else cfg.holdout_until,
-                                  self.iterations, sched["eval_every"])
+        self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
+        resuming = (resume and self.checkpoint_path is not None
+                    and self.checkpoint_path.exists())
+        # time_budget: planned after De-Init (mi_grg.training.budget); a resumed run
+        # continues its recorded plan. Until then the rule's count stands in.
+        self.time_plan = checkpoint_time_plan(self.checkpoint_path) if resuming else None
+        if cfg.time_budget is not None and resuming and self.time_plan is None:
+            raise ValueError(f"checkpoint {self.checkpoint_path} has no time plan to resume "
+                             "with time_budget")
+        self._schedule(cfg.iterations if cfg.iterations is not None else
+                       self.time_plan["iterations"] if self.time_plan else iteration_rule(geo))
         self.fit_idx, self.held_idx = self.views.fit, self.views.held
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(geo.n_views)]
-        # The config's window and cap are the paper's; this run's depend on its length and grid.
-        dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
-                                   start=sched["densify_start"],
-                                   stop=sched["densify_stop"], interval=sched["densify_interval"],
-                                   max_count=gaussian_cap(cfg, geo))
-        self.densifier = PGADensifier(dcfg, seed=cfg.seed)
-        self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.extent = cfg.extent
         # The TV term is a regulariser on a random block, not a measurement: a shorter
@@ -148,8 +143,14 @@ class Trainer:
                              "this case has none (vol_gt.npy); use the held-out views")
         self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
                                     keep=cfg.keep_state)
-        self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
-        if resume and self.checkpoint_path is not None and self.checkpoint_path.exists():
+        self.graph = None
+        # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
+        # set with the graph: constant until the next rebuild.
+        self._density_scale = None
+        # Density multiplier (graph field) that went with the returned state.
+        self.final_density_scale = None
+        self._stop = None     # where the stop rule fired (views.Stop), set by run()
+        if resuming:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
@@ -159,14 +160,81 @@ class Trainer:
             g, self.init_info = self._initial_gaussians()
             self.state = TrainState(iteration=0, raw=g.to_raw(),
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
+            if cfg.time_budget is not None:
+                self._plan_to_budget(g, t_begin)
+        self.state.time_plan = self.time_plan
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
-        self.graph = None
-        # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
-        # set with the graph: constant until the next rebuild.
-        self._density_scale = None
-        # Density multiplier (graph field) that went with the returned state.
-        self.final_density_scale = None
+
+    def _schedule(self, iterations: int) -> None:
+        """The parts that depend on the run's length: the scaled schedule, the view protocol,
+        a fresh densifier and optimiser."""
+        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.optim import Adam
+        cfg, geo = self.cfg, self.case.geometry
+        self.iterations = int(iterations)
+        # The config's schedule is the paper's, for 30k iterations: scale it to this run.
+        self.sched = sched = _scaled(cfg, self.iterations)
+        # Views (issue 26): held out while the stop rule decides, trained once it is done
+        # (the research rule monitor_3d judges the ground truth: the views stay held out).
+        self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
+                                  1.0 if cfg.monitor_3d else cfg.holdout_until,
+                                  self.iterations, sched["eval_every"])
+        # The config's window and cap are the paper's; this run's depend on its length and grid.
+        dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
+                                   start=sched["densify_start"],
+                                   stop=sched["densify_stop"], interval=sched["densify_interval"],
+                                   max_count=gaussian_cap(cfg, geo))
+        self.densifier = PGADensifier(dcfg, seed=cfg.seed)
+        self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
+
+    def _plan_to_budget(self, g: Gaussians, t_begin: float) -> None:
+        """Probe this machine's speed on the initial Gaussians ``g`` and plan the iteration
+        count to ``time_budget`` (mi_grg.training.budget); the schedule is rebuilt for it."""
+        from mi_grg.training.budget import ProbeCosts, loop_seconds, make_plan
+        costs = ProbeCosts(**self._probe(g), n=len(g),
+                           cap=gaussian_cap(self.cfg, self.case.geometry))
+
+        def price(iterations: int) -> float:
+            s = _scaled(self.cfg, iterations)
+            window = dataclasses.replace(self.views, iterations=iterations,
+                                         eval_every=s["eval_every"]).window_end
+            return loop_seconds(iterations, s, window, costs)
+        self.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
+                                   costs, price)
+        self._schedule(self.time_plan["iterations"])
+
+    def _probe(self, g: Gaussians, steps: int = 8) -> dict:
+        """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
+        compile the kernels), one held-out evaluation and one graph rebuild (each the
+        second of two), on a copy of ``g`` with the current (provisional) optimiser and
+        densifier, which ``_schedule`` replaces afterwards; the run's RNG is not drawn."""
+        raw = g.to_raw()
+        for v in raw.values():
+            dr.enable_grad(v)
+        rng, self.rng = getattr(self, "rng", None), np.random.default_rng(0)
+        rebuild = 0.0
+        try:
+            if self.uses_graph:
+                for _ in range(2):
+                    t = time.perf_counter()
+                    self._rebuild_graph(raw["positions"])
+                    rebuild = time.perf_counter() - t
+            for it in (1, 2):
+                raw, _ = self._step(it, raw)
+            t = time.perf_counter()
+            for it in range(3, 3 + steps):
+                raw, _ = self._step(it, raw)
+            step = (time.perf_counter() - t) / steps
+            evaluation = 0.0
+            if len(self.held_idx):
+                for _ in range(2):
+                    t = time.perf_counter()
+                    self._heldout_psnr(raw)
+                    evaluation = time.perf_counter() - t
+        finally:
+            self.rng, self.graph, self._density_scale = rng, None, None
+        return {"step": step, "evaluation": evaluation, "rebuild": rebuild}
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
@@ -268,6 +336,10 @@ class Trainer:
                             refresh=False)
             st.seconds = time.perf_counter() - self._t_start
             st.rng = self.rng.bit_generator.state
+            if (self.time_plan is not None and st.stopped_by is None
+                    and st.seconds >= self.time_plan["loop_budget_seconds"]):
+                st.stopped_by = (f"time budget ({self.cfg.time_budget:g} s) reached at "
+                                 f"iteration {it} of {self.iterations} planned")
             if it % self.cfg.checkpoint_every == 0 or st.stopped_by is not None:
                 self._save_checkpoint()
         bar.close()
@@ -416,7 +488,8 @@ class Trainer:
                    "max_gaussians": self.densifier.config.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
                    "views": self.views.record(st.iteration, stop, self.stopper.history,
-                                              self.stopper.reason, returned)}
+                                              self.stopper.reason, returned),
+                   "time_plan": self.time_plan}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
             from mi_grg.evaluation.plotting import plot_log

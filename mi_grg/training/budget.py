@@ -1,0 +1,120 @@
+"""A training run planned to a wall-clock budget (``TrainConfig.time_budget``, issue 21).
+
+With ``time_budget = SECONDS`` the trainer does not take its iteration count from
+``trainer.iteration_rule`` but plans it, after De-Init, from what this machine measures:
+
+1. a probe times a few training iterations on the initial Gaussians (after two warm-up
+   iterations that trace and compile the kernels), one held-out evaluation and one graph
+   rebuild, on throw-away copies of the state (the run itself starts afterwards from the
+   untouched initial state, with a fresh optimiser and densifier);
+2. ``loop_seconds`` prices a schedule of I iterations with that probe: iterations before
+   densification starts cost the probe's step; from then on every iteration, densification
+   + graph rebuild and held-out evaluation is priced at the densification cap, scaling the
+   probe's cost linearly with the Gaussian count. That overestimates (densification reaches
+   the cap only gradually, and split Gaussians are smaller, so each costs less), so a plan
+   ends early rather than late;
+3. ``plan_iterations`` takes the largest I whose price fits the loop's share of the budget
+   (the budget minus the time already spent on De-Init and the probe, minus ``RESERVE`` of
+   the budget for writing the result); the schedule (densification window, learning-rate
+   decay, evaluation interval, held-out window) scales with I as it does with the rule's;
+4. the loop also stops when its wall clock reaches its share, whatever the plan said
+   ("time budget ... reached"), so the budget holds on a machine that slows down mid-run.
+
+The budget covers the trainer, from De-Init to the returned state's files; the volume and
+scores that ``mi_grg.reconstruct`` computes afterwards are not part of it.
+metrics.json ``method_info.time_plan`` records the probe, the plan and the loop's share.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+#: Fewest iterations a budget must allow: one evaluation interval (the smallest
+#: ``eval_every`` of a scaled schedule), so that the run is evaluated at least once.
+MIN_ITERATIONS = 50
+#: Share of the budget kept back for what follows the loop (final checkpoint, files).
+RESERVE = 0.05
+
+
+class TimeBudgetError(ValueError):
+    """A budget that cannot be planned; the message names ``time_budget``."""
+
+
+@dataclass(frozen=True)
+class ProbeCosts:
+    """Seconds measured by the probe on ``n`` Gaussians; ``cap``: the densification cap.
+
+    step: one training iteration (its TV share included); evaluation: one held-out
+    evaluation (0 without held-out views); rebuild: one graph rebuild (0 without a graph)."""
+    step: float
+    evaluation: float
+    rebuild: float
+    n: int
+    cap: int
+
+    def __post_init__(self):
+        for name in ("step", "evaluation", "rebuild"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"probe {name} seconds must be finite and >= 0, got {v}")
+        if self.n < 1 or self.cap < 1:
+            raise ValueError(f"n and cap must be >= 1, got {self.n}, {self.cap}")
+
+    @property
+    def growth(self) -> float:
+        """Cost factor at the cap against the probe (linear in the count, never below 1)."""
+        return max(1.0, self.cap / self.n)
+
+
+def loop_seconds(iterations: int, schedule: dict, window_end: int, costs: ProbeCosts) -> float:
+    """Price of a training loop of ``iterations`` with the scaled ``schedule``
+    (densify_start / densify_stop / densify_interval / eval_every, as ``trainer._scaled``
+    returns) and held-out evaluations up to ``window_end`` (and one at the end)."""
+    start = min(schedule["densify_start"], iterations)
+    densify = len(range(schedule["densify_interval"] * (schedule["densify_start"]
+                                                        // schedule["densify_interval"] + 1),
+                        min(schedule["densify_stop"], iterations + 1),
+                        schedule["densify_interval"]))
+    evaluations = window_end // schedule["eval_every"] + 1
+    g = costs.growth
+    return (start * costs.step + (iterations - start) * g * costs.step
+            + densify * g * costs.rebuild + evaluations * g * costs.evaluation)
+
+
+def plan_iterations(loop_budget: float, price) -> int | None:
+    """The largest iteration count I >= ``MIN_ITERATIONS`` with ``price(I) <= loop_budget``
+    (``price``: seconds for I iterations, non-decreasing in I); None if not even
+    ``MIN_ITERATIONS`` fit."""
+    if price(MIN_ITERATIONS) > loop_budget:
+        return None
+    lo, hi = MIN_ITERATIONS, 2 * MIN_ITERATIONS
+    while price(hi) <= loop_budget:
+        lo, hi = hi, 2 * hi
+        if hi > 10**8:
+            raise TimeBudgetError(f"time_budget={loop_budget:g} s plans over 10^8 iterations: "
+                                  "the probe measured no cost")
+    while hi - lo > 1:                    # price(lo) fits, price(hi) does not
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if price(mid) <= loop_budget else (lo, mid)
+    return lo
+
+
+def make_plan(budget: float, setup_seconds: float, costs: ProbeCosts, price) -> dict:
+    """The plan of a run with ``time_budget = budget`` after ``setup_seconds`` of De-Init and
+    probe: {"iterations", "loop_budget_seconds", ...} for metrics.json. Raises
+    ``TimeBudgetError`` (naming time_budget and the smallest budget that works) when not even
+    one evaluation interval fits."""
+    loop_budget = budget * (1.0 - RESERVE) - setup_seconds
+    iterations = plan_iterations(loop_budget, price)
+    if iterations is None:
+        need = (setup_seconds + price(MIN_ITERATIONS)) / (1.0 - RESERVE)
+        raise TimeBudgetError(
+            f"time_budget={budget:g} s is too small for this case: De-Init and the probe took "
+            f"{setup_seconds:.1f} s, and one evaluation interval ({MIN_ITERATIONS} "
+            f"iterations) needs about {price(MIN_ITERATIONS):.1f} s more; the smallest budget "
+            f"that works here is about {math.ceil(need)} s")
+    return {"time_budget_seconds": float(budget), "setup_seconds": round(setup_seconds, 3),
+            "loop_budget_seconds": round(loop_budget, 3), "iterations": int(iterations),
+            "estimated_loop_seconds": round(price(iterations), 3),
+            "probe": {k: (round(v, 5) if isinstance(v, float) else v)
+                      for k, v in asdict(costs).items()}}

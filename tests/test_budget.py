@@ -1,0 +1,143 @@
+"""Training to a wall-clock budget (TrainConfig.time_budget, mi_grg.training.budget):
+the plan's arithmetic against brute force, the probe leaving the run untouched, the deadline,
+resuming, and the errors that name the option."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mi_grg.data.noise import NoiseModel
+from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+from mi_grg.training import budget
+from mi_grg.training.budget import (MIN_ITERATIONS, ProbeCosts, TimeBudgetError, loop_seconds,
+                                    make_plan, plan_iterations)
+from mi_grg.training.config import ConfigError, make_config, read_config_xml
+from mi_grg.training.densify import DensifyConfig, PGADensifier
+from mi_grg.training.trainer import Trainer, _scaled
+
+TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=1000,
+            holdout_every=3)
+
+
+# ---------------------------------------------------------------------------- the arithmetic
+@pytest.mark.parametrize("iterations", [50, 77, 500, 1500, 3001])
+def test_loop_seconds_counts_what_the_loop_does(iterations):
+    """The price is the probe's costs times the loop's counts: iterations before / after
+    densification starts, the densifier's own densify iterations, the evaluations."""
+    cfg = make_config("gr")
+    s = _scaled(cfg, iterations)
+    dens = PGADensifier(dataclasses.replace(DensifyConfig.from_train_config(cfg),
+                                            start=s["densify_start"], stop=s["densify_stop"],
+                                            interval=s["densify_interval"]))
+    n_dens = sum(dens.is_densify_iteration(it) for it in range(1, iterations + 1))
+    window = iterations // 2
+    n_eval = sum(1 for it in range(1, window + 1) if it % s["eval_every"] == 0) + 1
+    pre = min(iterations, s["densify_start"])
+    costs = ProbeCosts(step=0.1, evaluation=0.3, rebuild=0.7, n=1000, cap=2500)
+    want = pre * 0.1 + (iterations - pre) * 0.25 + n_dens * 1.75 + n_eval * 0.75
+    assert loop_seconds(iterations, s, window, costs) == pytest.approx(want)
+    # a cap below the probe's count never makes an iteration cheaper than the probe's
+    low = dataclasses.replace(costs, cap=10)
+    assert loop_seconds(iterations, s, window, low) == pytest.approx(
+        iterations * 0.1 + n_dens * 0.7 + n_eval * 0.3)
+
+
+@pytest.mark.parametrize("loop_budget", [4.0, 5.0, 37.3, 250.0, 1e4])
+def test_plan_is_the_largest_count_that_fits(loop_budget):
+    def price(i):            # a step-shaped, non-decreasing price (like the real one)
+        return 0.05 * i + 0.5 * (i // 97)
+    got = plan_iterations(loop_budget, price)
+    fits = [i for i in range(MIN_ITERATIONS, 300000) if price(i) <= loop_budget]
+    assert got == (max(fits) if fits else None)
+
+
+def test_too_small_a_budget_names_the_option_and_the_smallest_that_works():
+    costs = ProbeCosts(step=0.1, evaluation=0.2, rebuild=0.0, n=100, cap=100)
+
+    def price(i):
+        return loop_seconds(i, _scaled(make_config("r2"), i), i, costs)
+    with pytest.raises(TimeBudgetError, match=r"time_budget=3 s is too small") as e:
+        make_plan(3.0, 1.0, costs, price)
+    smallest = float(str(e.value).rsplit("about ", 1)[1].split(" s")[0])
+    plan = make_plan(smallest, 1.0, costs, price)           # that budget does work
+    assert plan["iterations"] >= MIN_ITERATIONS
+    assert plan["estimated_loop_seconds"] <= plan["loop_budget_seconds"]
+    assert plan["loop_budget_seconds"] == pytest.approx(smallest * (1 - budget.RESERVE) - 1.0,
+                                                        abs=1e-3)
+
+
+def test_config_errors_name_time_budget():
+    for bad in (0, -5):
+        with pytest.raises(ConfigError, match=r"time_budget must be > 0 seconds"):
+            make_config("gr", time_budget=bad)
+    with pytest.raises(ConfigError, match=r"time_budget \(60 s\) plans the iteration count; "
+                                          r"iterations=100"):
+        make_config("gr", time_budget=60, iterations=100)
+    assert make_config("gr", time_budget="none").time_budget is None
+    assert make_config("gr", time_budget="90").time_budget == 90.0
+
+
+def test_time_budget_in_an_xml_config(tmp_path):
+    p = tmp_path / "c.xml"
+    p.write_text('<training method="r2"><float name="time_budget" value="120"/></training>')
+    assert read_config_xml(p) == ("r2", {"time_budget": 120.0})
+    assert make_config("r2", p).time_budget == 120.0
+    p.write_text('<training><float name="time_budget" value="none"/></training>')
+    assert make_config("r2", p).time_budget is None
+
+
+# ---------------------------------------------------------------------------- in training
+@pytest.fixture(scope="module")
+def tiny_case():
+    geo = default_geometry(n=16, det=24, views=6)
+    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
+
+
+def test_a_budget_run_is_the_planned_run(tiny_case, monkeypatch):
+    """The probe draws no view of the run and leaves no optimiser or densifier state: the
+    run after planning I iterations is the run with iterations=I (same losses, same counts)."""
+    monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 120)
+    t = Trainer(tiny_case, make_config("gr", time_budget=600, **TINY), progress=False)
+    assert t.iterations == 120 and t.optimizer.max_steps == 120
+    assert t.time_plan["iterations"] == 120 and t.time_plan["probe"]["step"] > 0
+    info = t.run()
+    ref = Trainer(tiny_case, make_config("gr", iterations=120, **TINY), progress=False)
+    ref_info = ref.run()
+    assert info["iterations_run"] == ref_info["iterations_run"] == 120
+    assert info["time_plan"]["iterations"] == 120 and ref_info["time_plan"] is None
+    a = np.array([r["loss"] for r in t.state.log])
+    b = np.array([r["loss"] for r in ref.state.log])
+    np.testing.assert_allclose(a, b, rtol=1e-3)
+    assert [r["n_gaussians"] for r in t.state.log] == [r["n_gaussians"] for r in ref.state.log]
+
+
+def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
+    """A plan that overestimates the machine: the loop's wall clock ends the run."""
+    real = budget.make_plan
+
+    def optimistic(b, setup, costs, price):
+        plan = real(b, setup, costs, price)
+        return {**plan, "iterations": 100000, "loop_budget_seconds": 1.0}
+    monkeypatch.setattr(budget, "make_plan", optimistic)
+    t = Trainer(tiny_case, make_config("r2", time_budget=600, **TINY), progress=False)
+    info = t.run()
+    assert info["stopped_by"].startswith("time budget (600 s) reached at iteration ")
+    assert info["iterations_run"] < 100000 and info["train_seconds"] >= 1.0
+    assert info["train_seconds"] < 1.0 + 10 * max(r["seconds"] for r in t.state.log[:1])
+
+
+def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, crash_after):
+    monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 90)
+    cfg = make_config("gr", time_budget=600, **{**TINY, "checkpoint_every": 30})
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False), 40)
+    # a different machine speed would plan differently: the resumed run must not re-plan
+    monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 500)
+    t = Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
+    assert t.state.iteration == 30 and t.iterations == 90 and t.optimizer.max_steps == 90
+    assert t.run()["iterations_run"] == 90
+
+
+def test_a_budget_too_small_for_one_evaluation_is_a_clear_error(tiny_case):
+    with pytest.raises(TimeBudgetError, match=r"time_budget=0.01 s is too small for this "
+                                              r"case: .* the smallest budget that works"):
+        Trainer(tiny_case, make_config("r2", time_budget=0.01, **TINY), progress=False)
