@@ -6,7 +6,11 @@
     Laplacian -> Adam -> PGA densification every 100 iterations
     (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
     early stop, keeping the latest state within the stop margin of the best (or the best:
-    ``keep_state``).
+    ``keep_state``) -> once the stop rule is done, every view trains to the end
+    (``mi_grg.training.views``).
+
+The iteration count comes from ``iteration_rule`` (or ``iterations``), or is planned to a
+wall-clock ``time_budget`` (``mi_grg.training.budget``); the schedule scales with it.
 
 Every component is switched by ``TrainConfig`` (``mi_grg.training.config``), so one loop runs
 R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
