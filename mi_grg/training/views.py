@@ -2,8 +2,8 @@
 
 Every ``holdout_every``-th training view is held out: its projection error is the early-stop
 rule's signal (``mi_grg.training.early_stop``). With sparse views every view is also worth
-training on (25 noisy views at 64^3: training on all of them scores +0.3 to +0.7 dB), so the
-held-out views join training once no decision needs them any more:
+training on (measured: docs/benchmarks.md, "Every view counts"), so the held-out views
+join training once no decision needs them any more:
 
 - the decision window runs up to ``window_end``, the last evaluation at or before
   ``holdout_until`` x the iteration budget. The stop rule judges (and picks the state to
