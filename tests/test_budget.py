@@ -9,10 +9,12 @@ import pytest
 from mi_grg.data.noise import NoiseModel
 from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training import budget
-from mi_grg.training.budget import (MIN_ITERATIONS, ProbeCosts, TimeBudgetError, loop_seconds,
-                                    make_plan, plan_iterations)
+from mi_grg.training.budget import (MIN_ITERATIONS, REPLAN_SHARE, ProbeCosts, TimeBudgetError,
+                                    loop_seconds, make_plan, measured_pace, plan_iterations,
+                                    replan)
 from mi_grg.training.config import ConfigError, make_config, read_config_xml
 from mi_grg.training.densify import DensifyConfig, PGADensifier
+from mi_grg.training.optim import Adam, AdamError
 from mi_grg.training.trainer import Trainer, _scaled
 
 TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=1000,
@@ -49,6 +51,45 @@ def test_plan_is_the_largest_count_that_fits(loop_budget):
     got = plan_iterations(loop_budget, price)
     fits = [i for i in range(MIN_ITERATIONS, 300000) if price(i) <= loop_budget]
     assert got == (max(fits) if fits else None)
+
+
+@pytest.mark.parametrize("remaining", [0.01, 3.0, 41.0, 900.0])
+def test_replan_is_the_largest_rest_that_fits(remaining):
+    def price_rest(i):        # iterations after 400 at 0.1 s, evaluations every 50 at 0.4 s
+        return (i - 400) * 0.1 + ((i - 400) // 50 + 1) * 0.4
+    got = replan(400, remaining, price_rest)
+    fits = [i for i in range(401, 100000) if price_rest(i) <= REPLAN_SHARE * remaining]
+    assert got == (max(fits) if fits else 401)
+
+
+def test_measured_pace_leaves_out_spikes_but_not_the_tv_rhythm():
+    steps = [0.1, 0.15] * 20 + [2.0, 0.1, 0.15, 5.0]       # TV every other step; two spikes
+    clock = np.concatenate([[0.0], np.cumsum(steps)]).tolist()
+    assert measured_pace(clock) == pytest.approx(0.125, rel=1e-9)
+    with pytest.raises(ValueError):
+        measured_pace([1.0])
+
+
+def test_adam_rehorizon_continues_the_decay_without_a_jump():
+    a, ref = Adam(max_steps=1000), Adam(max_steps=1000)
+    a.rehorizon(400, 1600)
+    for t in (0, 1, 200, 400):              # before the knot: unchanged
+        assert a.lr("positions", t) == pytest.approx(ref.lr("positions", t), rel=1e-12)
+    lr0 = ref.lr0["positions"]
+    assert a.lr("positions", 1600) == pytest.approx(0.1 * lr0, rel=1e-12)
+    assert a.lr("positions", 5000) == pytest.approx(0.1 * lr0, rel=1e-12)
+    # log-linear between the knot and the new end, continuous at the knot
+    e = [np.log(a.lr("positions", t) / lr0) for t in (400, 700, 1000, 1600)]
+    d = np.diff(e)                          # steps of 300, 300, 600 iterations
+    assert d[0] == pytest.approx(d[1]) and d[2] == pytest.approx(2 * d[0])
+    assert e[0] == pytest.approx(np.log(ref.lr("positions", 400) / lr0))
+    shorter = Adam(max_steps=1000)
+    shorter.rehorizon(400, 500)             # a shorter run decays faster, still from 400
+    assert shorter.lr("raw_densities", 500) == pytest.approx(0.1 * shorter.lr0["raw_densities"])
+    with pytest.raises(AdamError, match="moved once already"):
+        a.rehorizon(800, 2000)
+    with pytest.raises(AdamError, match="0 < at < max_steps"):
+        Adam(max_steps=100).rehorizon(100, 100)
 
 
 def test_too_small_a_budget_names_the_option_and_the_smallest_that_works():
@@ -97,6 +138,7 @@ def test_a_budget_run_is_the_planned_run(tiny_case, monkeypatch):
     """The probe draws no view of the run and leaves no optimiser or densifier state: the
     run after planning I iterations is the run with iterations=I (same losses, same counts)."""
     monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 120)
+    monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 120)
     t = Trainer(tiny_case, make_config("gr", time_budget=600, **TINY), progress=False)
     assert t.iterations == 120 and t.optimizer.max_steps == 120
     assert t.time_plan["iterations"] == 120 and t.time_plan["probe"]["step"] > 0
@@ -111,6 +153,27 @@ def test_a_budget_run_is_the_planned_run(tiny_case, monkeypatch):
     assert [r["n_gaussians"] for r in t.state.log] == [r["n_gaussians"] for r in ref.state.log]
 
 
+def test_the_rest_of_the_run_is_replanned_when_densification_ends(tiny_case, monkeypatch):
+    """Planned 120, re-planned to 170 at densification's end (60): the run ends at 170 with
+    the learning rate decayed to its final ratio there, and metrics say so."""
+    monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 120)
+    asked = []
+
+    def fake_replan(it, remaining, price_rest):
+        asked.append((it, remaining, price_rest(it + 1), price_rest(it + 100)))
+        return 170
+    monkeypatch.setattr(budget, "replan", fake_replan)
+    t = Trainer(tiny_case, make_config("r2", time_budget=600, **TINY), progress=False)
+    info = t.run()
+    (it, remaining, one, hundred), = asked
+    assert it == 60 and 0 < remaining < 600 and 0 < one < hundred
+    assert info["iterations_run"] == 170 and info["iterations_planned"] == 170
+    assert info["time_plan"]["replanned"] == {"at": 60, "iterations": 170}
+    assert info["time_plan"]["replan_pace"]["seconds_per_iteration"] > 0
+    assert t.optimizer.lr("positions", 170) == pytest.approx(0.1 * t.optimizer.lr0["positions"])
+    assert t.views.iterations == 170
+
+
 def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
     """A plan that overestimates the machine: the loop's wall clock ends the run."""
     real = budget.make_plan
@@ -119,6 +182,7 @@ def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
         plan = real(b, setup, costs, price)
         return {**plan, "iterations": 100000, "loop_budget_seconds": 1.0}
     monkeypatch.setattr(budget, "make_plan", optimistic)
+    monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 100000)
     t = Trainer(tiny_case, make_config("r2", time_budget=600, **TINY), progress=False)
     info = t.run()
     assert info["stopped_by"].startswith("time budget (600 s) reached at iteration ")
@@ -127,14 +191,23 @@ def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
 
 
 def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, crash_after):
+    """Planned 90 (densification ends at 45), re-planned there to 110, checkpointed at 60,
+    crashed at 70: the resumed run keeps both (a machine of another speed would plan
+    otherwise) and ends at 110."""
     monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 90)
+    monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 110)
     cfg = make_config("gr", time_budget=600, **{**TINY, "checkpoint_every": 30})
-    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False), 40)
-    # a different machine speed would plan differently: the resumed run must not re-plan
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False), 70)
     monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 500)
+    monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 700)
     t = Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
-    assert t.state.iteration == 30 and t.iterations == 90 and t.optimizer.max_steps == 90
-    assert t.run()["iterations_run"] == 90
+    assert t.state.iteration == 60 and t.iterations == 110
+    assert t.densifier.config.stop == 45 and t.optimizer.knot[0] == 45
+    assert t.optimizer.max_steps == 110 and t.views.iterations == 110
+    info = t.run()
+    assert info["iterations_run"] == 110
+    assert info["time_plan"]["iterations"] == 90
+    assert info["time_plan"]["replanned"] == {"at": 45, "iterations": 110}
 
 
 def test_a_budget_too_small_for_one_evaluation_is_a_clear_error(tiny_case):

@@ -17,7 +17,12 @@ With ``time_budget = SECONDS`` the trainer does not take its iteration count fro
    (the budget minus the time already spent on De-Init and the probe, minus ``RESERVE`` of
    the budget for writing the result); the schedule (densification window, learning-rate
    decay, evaluation interval, held-out window) scales with I as it does with the rule's;
-4. the loop also stops when its wall clock reaches its share, whatever the plan said
+4. when densification ends (half-way through the schedule) the Gaussian count is final and
+   the loop's own pace is known: ``replan`` sets the rest of the run from the measured
+   seconds per iteration (the learning-rate decay is stretched or shrunk to the new end
+   without a jump: ``Adam.rehorizon``; the densification window is over, the evaluation
+   interval stays, the held-out window moves with the new count);
+5. the loop also stops when its wall clock reaches its share, whatever the plan said
    ("time budget ... reached"), so the budget holds on a machine that slows down mid-run.
 
 The budget covers the trainer, from De-Init to the returned state's files; the volume and
@@ -34,6 +39,8 @@ from dataclasses import asdict, dataclass
 MIN_ITERATIONS = 50
 #: Share of the budget kept back for what follows the loop (final checkpoint, files).
 RESERVE = 0.05
+#: Share of the loop's remaining time that the re-plan spends (the pace varies a little).
+REPLAN_SHARE = 0.97
 
 
 class TimeBudgetError(ValueError):
@@ -118,3 +125,34 @@ def make_plan(budget: float, setup_seconds: float, costs: ProbeCosts, price) -> 
             "estimated_loop_seconds": round(price(iterations), 3),
             "probe": {k: (round(v, 5) if isinstance(v, float) else v)
                       for k, v in asdict(costs).items()}}
+
+
+def measured_pace(seconds: list) -> float:
+    """Seconds per iteration from the loop's cumulative clock at consecutive iterations:
+    the mean step, leaving out the spikes (an evaluation, a densification and graph
+    rebuild: steps over 3x the median); the TV term's every-other-iteration cost stays in."""
+    steps = [b - a for a, b in zip(seconds, seconds[1:])]
+    if not steps:
+        raise ValueError("need the clock at two iterations at least")
+    median = sorted(steps)[len(steps) // 2]
+    kept = [d for d in steps if d <= 3.0 * median] or steps
+    return sum(kept) / len(kept)
+
+
+def replan(iteration: int, remaining_seconds: float, price_rest) -> int:
+    """The iteration count for the rest of a run at ``iteration`` with
+    ``remaining_seconds`` of its loop's share left: the largest I > iteration with
+    ``price_rest(I) <= REPLAN_SHARE x remaining_seconds`` (``price_rest``: seconds of the
+    iterations iteration+1..I and their evaluations), at least iteration + 1."""
+    room = REPLAN_SHARE * remaining_seconds
+    lo, hi = iteration + 1, iteration + 2
+    if price_rest(lo) > room:
+        return lo
+    while price_rest(hi) <= room:
+        lo, hi = hi, iteration + 2 * (hi - iteration)
+        if hi - iteration > 10**8:
+            raise TimeBudgetError("time_budget re-plan found no cost per iteration")
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if price_rest(mid) <= room else (lo, mid)
+    return lo

@@ -19,6 +19,10 @@ value over ``max_steps`` steps and stays there (3DGS/R2-Gaussian ``get_expon_lr_
 
     lr(t) = lr0 * final_ratio ** (clip(t, 0, max_steps) / max_steps)
 
+``rehorizon(at, max_steps)`` moves the end of the decay during a run (a run planned to a
+time budget, mi_grg.training.budget): from step ``at`` on, the exponent goes on from its
+value there and reaches 1 at the new ``max_steps``, so the rate never jumps.
+
 The update is PyTorch's Adam (no weight decay, no amsgrad), which R2-Gaussian uses:
 
     m <- b1 m + (1 - b1) g,   v <- b2 v + (1 - b2) g^2,   t <- t + 1
@@ -98,6 +102,7 @@ class Adam:
         self.betas = (b1, b2)
         self.eps = float(eps)
         self.max_steps = int(max_steps)
+        self.knot = None        # (step, exponent) where rehorizon() moved the decay's end
         self.final_ratio = float(final_ratio)
         self.check_finite = bool(check_finite)
         self.state: dict[str, GroupState] = {}   # created on a group's first step
@@ -118,8 +123,26 @@ class Adam:
     def lr(self, name: str, step: int | float) -> float:
         """Learning rate of group ``name`` at step ``step`` (1 = the first update)."""
         self._check_name(name)
-        t = min(max(float(step), 0.0), float(self.max_steps)) / self.max_steps
-        return self.lr0[name] * self.final_ratio ** t
+        return self.lr0[name] * self.final_ratio ** self._exponent(step)
+
+    def _exponent(self, step: int | float) -> float:
+        """How far the decay is at ``step``: 0 at the start, 1 from ``max_steps`` on."""
+        t = min(max(float(step), 0.0), float(self.max_steps))
+        if self.knot is None:
+            return t / self.max_steps
+        t0, e0 = self.knot
+        return t * e0 / t0 if t <= t0 else e0 + (1.0 - e0) * (t - t0) / (self.max_steps - t0)
+
+    def rehorizon(self, at: int, max_steps: int) -> None:
+        """From step ``at`` on, decay to ``final_ratio`` by step ``max_steps`` instead,
+        continuing from the rate at ``at`` (unchanged before it; see the module docstring)."""
+        at, max_steps = int(at), int(max_steps)
+        if not 0 < at < max_steps:
+            raise AdamError(f"rehorizon needs 0 < at < max_steps, got at={at}, "
+                            f"max_steps={max_steps}")
+        if self.knot is not None:
+            raise AdamError(f"the decay was moved once already (at step {self.knot[0]})")
+        self.knot, self.max_steps = (at, self._exponent(at)), max_steps
 
     def step_count(self, name: str) -> int:
         self._check_name(name)

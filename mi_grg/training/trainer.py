@@ -158,6 +158,8 @@ class Trainer:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
+            if self.time_plan is not None and self.time_plan.get("replanned"):
+                self._set_rest_of_run(**self.time_plan["replanned"])
         else:
             if resume and self.checkpoint_path is not None:
                 print(f"no checkpoint in {self.out}; starting from scratch")
@@ -207,6 +209,34 @@ class Trainer:
         self.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
                                    costs, price)
         self._schedule(self.time_plan["iterations"])
+
+    def _replan(self, it: int, seconds: float, n: int) -> None:
+        """Densification is over at ``it``: plan the rest of the run from the loop's
+        measured pace (mi_grg.training.budget.replan) and record it in the time plan."""
+        from mi_grg.training.budget import measured_pace, replan
+        plan = self.time_plan
+        clock = [r["seconds"] for r in self.state.log[-min(200, it // 4):]] + [seconds]
+        pace = measured_pace(clock)
+        evaluation = plan["probe"]["evaluation"] * max(1.0, n / plan["probe"]["n"])
+        every = self.sched["eval_every"]
+
+        def price_rest(iterations: int) -> float:
+            window = dataclasses.replace(self.views, iterations=iterations).window_end
+            evals = max(0, window // every - it // every) + 1
+            return (iterations - it) * pace + evals * evaluation
+        iterations = replan(it, plan["loop_budget_seconds"] - seconds, price_rest)
+        plan["replanned"] = {"at": it, "iterations": iterations}
+        plan["replan_pace"] = {"seconds_per_iteration": round(pace, 5),
+                               "evaluation_seconds": round(evaluation, 4)}
+        self._set_rest_of_run(it, iterations)
+
+    def _set_rest_of_run(self, at: int, iterations: int) -> None:
+        """The run ends at ``iterations`` instead (decided at iteration ``at``, after
+        densification): the held-out window moves with it, the learning-rate decay is
+        stretched to it without a jump."""
+        self.iterations = int(iterations)
+        self.views = dataclasses.replace(self.views, iterations=self.iterations)
+        self.optimizer.rehorizon(at, self.iterations)
 
     def _probe(self, g: Gaussians, steps: int = 8) -> dict:
         """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
@@ -331,6 +361,10 @@ class Trainer:
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
+            if (self.time_plan is not None and "replanned" not in self.time_plan
+                    and it == self.sched["densify_stop"]):
+                self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
+                bar.total = self.iterations
             raw = self._evaluate(it, raw, row)
             last_psnr = row.get("heldout_psnr", last_psnr)
             st.log.append(row)
