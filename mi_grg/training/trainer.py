@@ -166,11 +166,11 @@ class Trainer:
             g, self.init_info = self._initial_gaussians()
             self.state = TrainState(iteration=0, raw=g.to_raw(),
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
-            if cfg.time_budget is not None:
-                self._plan_to_budget(g, t_begin)
-        self.state.time_plan = self.time_plan
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
+        if not resuming and cfg.time_budget is not None:
+            self._plan_to_budget(g, t_begin)
+        self.state.time_plan = self.time_plan
 
     def _schedule(self, iterations: int) -> None:
         """The parts that depend on the run's length: the scaled schedule, the view protocol,
@@ -246,7 +246,7 @@ class Trainer:
         raw = g.to_raw()
         for v in raw.values():
             dr.enable_grad(v)
-        rng, self.rng = getattr(self, "rng", None), np.random.default_rng(0)
+        rng, self.rng = self.rng, np.random.default_rng(0)
         rebuild = 0.0
         try:
             if self.uses_graph:
