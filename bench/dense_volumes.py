@@ -50,6 +50,7 @@ def main(argv=None) -> int:
     from mi_grg.lab.suite import load_suite
     from mi_grg.methods import code_version, reconstruct
     suite = load_suite(args.suite)
+    code = code_version()          # at the start: the code these runs import
     root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "dense_volumes"
     rows = []
     for name in args.cases.split(","):
@@ -75,7 +76,7 @@ def main(argv=None) -> int:
                          "wall_s": round(time.perf_counter() - t0, 1),
                          "curve": curve, "load_1min": round(load, 2)})
             print(json.dumps({k: v for k, v in rows[-1].items() if k != "curve"}))
-            _write(rows, args, code_version())
+            _write(rows, args, code)
     return 0
 
 

@@ -37,6 +37,7 @@ def main(argv=None) -> int:
     from mi_grg.methods import code_version
     geo = default_geometry(n=args.n, det=args.n * 3 // 2, views=25)
     case = simulate_case(args.phantom, geo, default_test_angles(25), NoiseModel(), seed=0)
+    code = code_version()          # at the start: the code these runs import
     out_root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "time_budget"
     rows = []
     for b in [float(x) for x in args.budgets.split(",")]:
@@ -57,7 +58,7 @@ def main(argv=None) -> int:
                      "load_1min": round(load, 2)})
         print(json.dumps(rows[-1]))
     result = {"case": f"{args.phantom} {args.n}^3, 25 noisy views", "method": args.method,
-              "code": code_version(), "machine": platform.processor() or platform.machine(),
+              "code": code, "machine": platform.processor() or platform.machine(),
               "cores": os.cpu_count(), "rows": rows}
     (ROOT / "docs" / "bench").mkdir(parents=True, exist_ok=True)
     (ROOT / "docs" / "bench" / "time_budget.json").write_text(json.dumps(result, indent=1))
