@@ -94,15 +94,22 @@ def plan_iterations(loop_budget: float, price) -> int | None:
     ``MIN_ITERATIONS`` fit."""
     if price(MIN_ITERATIONS) > loop_budget:
         return None
-    lo, hi = MIN_ITERATIONS, 2 * MIN_ITERATIONS
-    while price(hi) <= loop_budget:
-        lo, hi = hi, 2 * hi
-        if hi > 10**8:
-            raise TimeBudgetError(f"time_budget={loop_budget:g} s plans over 10^8 iterations: "
-                                  "the probe measured no cost")
-    while hi - lo > 1:                    # price(lo) fits, price(hi) does not
+    return _largest(MIN_ITERATIONS, lambda i: price(i) <= loop_budget)
+
+
+def _largest(first: int, fits) -> int:
+    """The largest n >= ``first`` with ``fits(n)``, for ``fits`` true at ``first`` and, as n
+    grows, true up to some n and false after it: steps doubling, then bisection."""
+    lo, step = first, 1
+    while fits(lo + step):
+        lo, step = lo + step, 2 * step
+        if step > 10**8:
+            raise TimeBudgetError("time_budget: over 10^8 iterations fit; the probe measured "
+                                  "no cost")
+    hi = lo + step                        # fits(lo), not fits(hi)
+    while hi - lo > 1:
         mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if price(mid) <= loop_budget else (lo, mid)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
     return lo
 
 
@@ -145,14 +152,6 @@ def replan(iteration: int, remaining_seconds: float, price_rest) -> int:
     ``price_rest(I) <= REPLAN_SHARE x remaining_seconds`` (``price_rest``: seconds of the
     iterations iteration+1..I and their evaluations), at least iteration + 1."""
     room = REPLAN_SHARE * remaining_seconds
-    lo, hi = iteration + 1, iteration + 2
-    if price_rest(lo) > room:
-        return lo
-    while price_rest(hi) <= room:
-        lo, hi = hi, iteration + 2 * (hi - iteration)
-        if hi - iteration > 10**8:
-            raise TimeBudgetError("time_budget re-plan found no cost per iteration")
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if price_rest(mid) <= room else (lo, mid)
-    return lo
+    if price_rest(iteration + 1) > room:
+        return iteration + 1
+    return _largest(iteration + 1, lambda i: price_rest(i) <= room)
