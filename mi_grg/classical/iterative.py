@@ -216,6 +216,16 @@ def _initial(init, proj, geometry, angles, n_vox):
     return mi.Float(check_volume(init, geometry, "init").reshape(-1))
 
 
+def _check_inputs(proj, geometry: Geometry, angles, n_iter) -> tuple:
+    """(angles, projections) checked against the scan, and n_iter >= 1: the inputs every
+    iterative solver (SART, ASD-POCS, PDHG) validates first."""
+    a = check_angles(angles, geometry)
+    p = check_projections(proj, geometry, a)
+    if int(n_iter) < 1:
+        raise ValueError(f"n_iter must be >= 1, got {n_iter}")
+    return a, p
+
+
 def _progress(total, desc, progress):
     from tqdm import tqdm
     return tqdm(total=total, desc=desc, file=sys.stderr, disable=not progress, leave=True)
@@ -252,10 +262,7 @@ def sart(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, blocksize: 
     Returns:
         float32 [x, y, z] densities.
     """
-    a = check_angles(angles, geometry)
-    p = check_projections(proj, geometry, a)
-    if int(n_iter) < 1:
-        raise ValueError(f"n_iter must be >= 1, got {n_iter}")
+    a, p = _check_inputs(proj, geometry, angles, n_iter)
     if not 0 < relaxation < 2:
         raise ValueError(f"relaxation must be in (0, 2), got {relaxation}")
     eng = _SART(p, geometry, a, blocksize, order, seed)
@@ -307,10 +314,7 @@ def asd_pocs(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, tv_iter
     Returns:
         float32 [x, y, z] densities.
     """
-    a = check_angles(angles, geometry)
-    p = check_projections(proj, geometry, a)
-    if int(n_iter) < 1:
-        raise ValueError(f"n_iter must be >= 1, got {n_iter}")
+    a, p = _check_inputs(proj, geometry, angles, n_iter)
     if int(tv_iters) < 0:
         raise ValueError(f"tv_iters must be >= 0, got {tv_iters}")
     eng = _SART(p, geometry, a, blocksize, order, seed)

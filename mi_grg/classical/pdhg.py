@@ -28,7 +28,6 @@ the same problem in mm or in R2-Gaussian's normalised units and for any density 
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
@@ -36,8 +35,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
-from mi_grg.classical.joseph import JosephProjector, check_angles, check_projections
-from mi_grg.classical.iterative import _to_numpy
+from mi_grg.classical.joseph import JosephProjector
+from mi_grg.classical.iterative import _check_inputs, _progress, _to_numpy
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
 GRAD_NORM = math.sqrt(12.0)
@@ -226,14 +225,10 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
     Returns:
         float32 [x, y, z] densities.
     """
-    from tqdm import tqdm
-    a = check_angles(angles, geometry)
-    p = check_projections(proj, geometry, a)
-    if int(n_iter) < 1:
-        raise ValueError(f"n_iter must be >= 1, got {n_iter}")
+    a, p = _check_inputs(proj, geometry, angles, n_iter)
     solver = PDHG(p, geometry, a, lam=float(lam), upper=upper, gamma=gamma, norm_A=norm_A,
                   power_iters=power_iters, nonneg=nonneg)
-    with tqdm(total=int(n_iter), desc="PDHG", file=sys.stderr, disable=not progress) as bar:
+    with _progress(int(n_iter), "PDHG", progress) as bar:
         for it in range(int(n_iter)):
             solver.step()
             bar.update(1)

@@ -34,6 +34,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+from mi_grg.training.densify import densify_iterations
+
 #: Fewest iterations a budget must allow: one evaluation interval (the smallest
 #: ``eval_every`` of a scaled schedule), so that the run is evaluated at least once.
 MIN_ITERATIONS = 50
@@ -78,10 +80,8 @@ def loop_seconds(iterations: int, schedule: dict, window_end: int, costs: ProbeC
     (densify_start / densify_stop / densify_interval / eval_every, as ``trainer._scaled``
     returns) and held-out evaluations up to ``window_end`` (and one at the end)."""
     start = min(schedule["densify_start"], iterations)
-    densify = len(range(schedule["densify_interval"] * (schedule["densify_start"]
-                                                        // schedule["densify_interval"] + 1),
-                        min(schedule["densify_stop"], iterations + 1),
-                        schedule["densify_interval"]))
+    densify = len(densify_iterations(schedule["densify_start"], schedule["densify_stop"],
+                                     schedule["densify_interval"], iterations))
     evaluations = window_end // schedule["eval_every"] + 1
     g = costs.growth
     return (start * costs.step + (iterations - start) * g * costs.step

@@ -110,14 +110,8 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     restores ``optimizer``, ``densifier`` and ``stopper`` through load_state_dict() and
     returns the ``TrainState``. A checkpoint of another config is an error that names the
     differing fields (resuming must continue the same run)."""
-    try:
-        f = np.load(path)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
-    with f:
-        if "meta" not in f.files:
-            raise ValueError(f"{path} is not a training checkpoint (no meta record)")
-        meta = json.loads(bytes(f["meta"]).decode())
+    with _open(path) as f:
+        meta = _meta(f, path)
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
         # lack fields added since (their value then: ADDED_LATER).
         used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
@@ -150,11 +144,20 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
 
 
 def checkpoint_time_plan(path) -> dict | None:
-    """The time plan recorded in a checkpoint (None: none, or not readable here; reading
-    the checkpoint itself reports what is wrong with it). A resumed run needs it before it
-    can build its schedule."""
+    """The time plan recorded in a checkpoint (None: none). A resumed time_budget run needs
+    it before it can build its schedule."""
+    with _open(path) as f:
+        return _meta(f, path).get("time_plan")
+
+
+def _open(path):
     try:
-        with np.load(path) as f:
-            return json.loads(bytes(f["meta"]).decode()).get("time_plan")
-    except (OSError, ValueError, KeyError):
-        return None
+        return np.load(path)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
+
+
+def _meta(f, path) -> dict:
+    if "meta" not in f.files:
+        raise ValueError(f"{path} is not a training checkpoint (no meta record)")
+    return json.loads(bytes(f["meta"]).decode())

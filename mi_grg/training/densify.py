@@ -112,6 +112,12 @@ class DensifyConfig:
                    lambda_g=cfg.lambda_g, use_graph=cfg.use_pga, max_count=cfg.max_gaussians)
 
 
+def densify_iterations(start: int, stop: int, interval: int, last: int) -> range:
+    """The iterations up to ``last`` that densify: the multiples of ``interval`` strictly
+    between ``start`` and ``stop`` (the one rule; ``PGADensifier.is_densify_iteration``)."""
+    return range(interval * (start // interval + 1), min(stop, last + 1), interval)
+
+
 def _seed_state(seed: int, iteration: int) -> int:
     """64-bit PCG32 initstate from (seed, iteration) (splitmix-style mixing)."""
     z = (int(seed) * 0x9E3779B97F4A7C15 + int(iteration) + 0x632BE59BD9B4E019) % (1 << 64)
@@ -260,7 +266,7 @@ class PGADensifier:
     # ------------------------------------------------------------------ schedule
     def is_densify_iteration(self, iteration: int) -> bool:
         c = self.config
-        return c.start < iteration < c.stop and iteration % c.interval == 0
+        return iteration in densify_iterations(c.start, c.stop, c.interval, iteration)
 
     def step(self, iteration: int, raw: dict, optimizer: Adam | None, graph_term=None,
              bbox=None, seed: int | None = None):

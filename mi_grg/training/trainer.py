@@ -127,12 +127,14 @@ class Trainer:
                     and self.checkpoint_path.exists())
         # time_budget: planned after De-Init (mi_grg.training.budget); a resumed run
         # continues its recorded plan. Until then the rule's count stands in.
-        self.time_plan = checkpoint_time_plan(self.checkpoint_path) if resuming else None
-        if cfg.time_budget is not None and resuming and self.time_plan is None:
-            raise ValueError(f"checkpoint {self.checkpoint_path} has no time plan to resume "
-                             "with time_budget")
+        plan = None
+        if resuming and cfg.time_budget is not None:
+            plan = checkpoint_time_plan(self.checkpoint_path)
+            if plan is None:
+                raise ValueError(f"checkpoint {self.checkpoint_path} has no time plan to "
+                                 "resume with time_budget")
         self._schedule(cfg.iterations if cfg.iterations is not None else
-                       self.time_plan["iterations"] if self.time_plan else iteration_rule(geo))
+                       plan["iterations"] if plan else iteration_rule(geo))
         self.fit_idx, self.held_idx = self.views.fit, self.views.held
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(geo.n_views)]
@@ -158,8 +160,8 @@ class Trainer:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
-            if self.time_plan is not None and self.time_plan.get("replanned"):
-                self._set_rest_of_run(**self.time_plan["replanned"])
+            if plan is not None and plan.get("replanned"):
+                self._set_rest_of_run(**plan["replanned"])
         else:
             if resume and self.checkpoint_path is not None:
                 print(f"no checkpoint in {self.out}; starting from scratch")
@@ -170,7 +172,12 @@ class Trainer:
         self.rng.bit_generator.state = self.state.rng
         if not resuming and cfg.time_budget is not None:
             self._plan_to_budget(g, t_begin)
-        self.state.time_plan = self.time_plan
+
+    @property
+    def time_plan(self) -> dict | None:
+        """The run's time plan (time_budget runs; None otherwise), kept in its state so that
+        checkpoints carry it."""
+        return self.state.time_plan
 
     def _schedule(self, iterations: int) -> None:
         """The parts that depend on the run's length: the scaled schedule, the view protocol,
@@ -206,8 +213,8 @@ class Trainer:
             window = dataclasses.replace(self.views, iterations=iterations,
                                          eval_every=s["eval_every"]).window_end
             return loop_seconds(iterations, s, window, costs)
-        self.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
-                                   costs, price)
+        self.state.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
+                                         costs, price)
         self._schedule(self.time_plan["iterations"])
 
     def _replan(self, it: int, seconds: float, n: int) -> None:
@@ -215,7 +222,8 @@ class Trainer:
         measured pace (mi_grg.training.budget.replan) and record it in the time plan."""
         from mi_grg.training.budget import measured_pace, replan
         plan = self.time_plan
-        clock = [r["seconds"] for r in self.state.log[-min(200, it // 4):]] + [seconds]
+        window = max(1, min(200, it // 4))      # the last quarter, at most 200 iterations
+        clock = [r["seconds"] for r in self.state.log[-window:]] + [seconds]
         pace = measured_pace(clock)
         evaluation = plan["probe"]["evaluation"] * max(1.0, n / plan["probe"]["n"])
         every = self.sched["eval_every"]

@@ -27,6 +27,7 @@ resumed run rebuilds the same protocol from its checkpointed stopper state.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -71,12 +72,12 @@ class ViewProtocol:
             raise ValueError("holdout_every leaves no training views")
 
     # ------------------------------------------------------------------ the view sets
-    @property
+    @cached_property       # asked at every iteration; the settings are frozen
     def held(self) -> np.ndarray:
         """Views held out for decisions, [k] int (``mi_grg.data.case.holdout_split``)."""
         return holdout_split(self.n_views, self.holdout_every)[1]
 
-    @property
+    @cached_property
     def fit(self) -> np.ndarray:
         """Views trained while the held-out ones decide, [n_views - k] int."""
         return holdout_split(self.n_views, self.holdout_every)[0]
