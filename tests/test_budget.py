@@ -9,9 +9,10 @@ import pytest
 from mi_grg.data.noise import NoiseModel
 from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training import budget
-from mi_grg.training.budget import (MIN_ITERATIONS, REPLAN_SHARE, ProbeCosts, TimeBudgetError,
-                                    loop_seconds, make_plan, measured_pace, plan_iterations,
-                                    replan)
+from mi_grg.training.budget import (MIN_ITERATIONS, REPLAN_SHARE, LoopPace, ProbeCosts,
+                                    TimeBudgetError, loop_seconds, make_plan, measured_pace,
+                                    plan_iterations, replan, replans_done, replans_of,
+                                    rest_seconds)
 from mi_grg.training.config import ConfigError, make_config, read_config_xml
 from mi_grg.training.densify import DensifyConfig, PGADensifier
 from mi_grg.training.optim import Adam, AdamError
@@ -62,6 +63,31 @@ def test_replan_is_the_largest_rest_that_fits(remaining):
     assert got == (max(fits) if fits else 401)
 
 
+@pytest.mark.parametrize("growth,stop,iterations", [(0.0, 300, 900), (40.0, 300, 900),
+                                                   (40.0, 2000, 1500), (900.0, 700, 1200),
+                                                   (40.0, 300, 251)])
+def test_rest_seconds_against_an_iteration_by_iteration_count(growth, stop, iterations):
+    """The rest's price against a loop that grows the count at every iteration of the open
+    window (capped), pays each step, each densification and each evaluation at the count."""
+    pace = LoopPace(at=250, per_gaussian=2e-6, n=60000, growth=growth, cap=400000,
+                    rebuild=1e-5, evaluation=3e-6)
+    events = range(275, min(stop, iterations + 1), 25)
+    n, total = float(pace.n), 0.0
+    for t in range(pace.at + 1, iterations + 1):
+        if t <= stop:
+            n = min(pace.cap, n + growth)
+        total += pace.per_gaussian * n + (pace.rebuild * n if t in events else 0.0)
+    total += 4 * pace.evaluation * n
+    assert rest_seconds(pace, iterations, stop, events, 4) == pytest.approx(total, rel=1e-9)
+
+
+def test_replans_of_reads_a_plan_written_before_the_window_replans():
+    old = {"iterations": 90, "replanned": {"at": 45, "iterations": 110}}
+    assert replans_of(old) == [{"at": 45, "iterations": 110, "final": True}]
+    assert replans_done(old) and not replans_done({"replans": [{"at": 5, "final": False}]})
+    assert replans_of(None) == []
+
+
 def test_measured_pace_leaves_out_spikes_but_not_the_tv_rhythm():
     steps = [0.1, 0.15] * 20 + [2.0, 0.1, 0.15, 5.0]       # TV every other step; two spikes
     clock = np.concatenate([[0.0], np.cumsum(steps)]).tolist()
@@ -86,8 +112,15 @@ def test_adam_rehorizon_continues_the_decay_without_a_jump():
     shorter = Adam(max_steps=1000)
     shorter.rehorizon(400, 500)             # a shorter run decays faster, still from 400
     assert shorter.lr("raw_densities", 500) == pytest.approx(0.1 * shorter.lr0["raw_densities"])
-    with pytest.raises(AdamError, match="moved once already"):
-        a.rehorizon(800, 2000)
+    lr_800 = a.lr("positions", 800)
+    a.rehorizon(800, 2000)                  # a second move: continuous again, ends at 2000
+    assert a.lr("positions", 800) == pytest.approx(lr_800, rel=1e-12)
+    assert a.lr("positions", 2000) == pytest.approx(0.1 * lr0, rel=1e-12)
+    assert a.lr("positions", 400) == pytest.approx(ref.lr("positions", 400), rel=1e-12)
+    rates = [a.lr("positions", t) for t in range(0, 2100, 50)]
+    assert all(x >= y for x, y in zip(rates, rates[1:]))
+    with pytest.raises(AdamError, match="steps must increase"):
+        a.rehorizon(700, 3000)
     with pytest.raises(AdamError, match="0 < at < max_steps"):
         Adam(max_steps=100).rehorizon(100, 100)
 
@@ -159,25 +192,37 @@ def test_a_budget_run_is_the_planned_run(tiny_case, monkeypatch):
     np.testing.assert_allclose(a, b, rtol=1e-4)
 
 
-def test_the_rest_of_the_run_is_replanned_when_densification_ends(tiny_case, monkeypatch):
-    """Planned 120, re-planned to 170 at densification's end (60): the run ends at 170 with
-    the learning rate decayed to its final ratio there, and metrics say so."""
+def test_the_plan_moves_with_densification_then_is_replanned_once_more(tiny_case,
+                                                                        monkeypatch):
+    """Planned 120; every densification iteration re-plans (here to 130, 140, ...) and the
+    window's end moves with the count (the scaled schedule's densify_stop of the new count);
+    when the window closes, a final re-plan (here 400) sets the end: the run ends there with
+    the learning rate decayed to its final ratio, and metrics record every re-plan."""
     monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 120)
     asked = []
 
     def fake_replan(it, remaining, price_rest):
         asked.append((it, remaining, price_rest(it + 1), price_rest(it + 100)))
-        return 170
+        return 400 if len(asked) > 1 and it == t.sched["densify_stop"] else 120 + 10 * len(asked)
     monkeypatch.setattr(budget, "replan", fake_replan)
     t = Trainer(tiny_case, make_config("r2", time_budget=600, **TINY), progress=False)
+    start, interval = t.sched["densify_start"], t.sched["densify_interval"]
     info = t.run()
-    (it, remaining, one, hundred), = asked
-    assert it == 60 and 0 < remaining < 600 and 0 < one < hundred
-    assert info["iterations_run"] == 170 and info["iterations_planned"] == 170
-    assert info["time_plan"]["replanned"] == {"at": 60, "iterations": 170}
-    assert info["time_plan"]["replan_pace"]["seconds_per_iteration"] > 0
-    assert t.optimizer.lr("positions", 170) == pytest.approx(0.1 * t.optimizer.lr0["positions"])
-    assert t.views.iterations == 170
+    replans = info["time_plan"]["replans"]
+    assert [r["at"] for r in replans] == [a[0] for a in asked]
+    window, final = replans[:-1], replans[-1]
+    assert len(window) >= 2 and all(not r["final"] for r in window)
+    for r in window:          # each window re-plan: the densification iterations, stop moved
+        assert r["at"] % interval == 0 and r["at"] > start
+        assert r["densify_stop"] == max(r["at"] + 1, _scaled(t.cfg, r["iterations"])["densify_stop"])
+    assert final["final"] and final["at"] == window[-1]["densify_stop"] and final["iterations"] == 400
+    assert final["densify_stop"] is None and final["growth_per_iteration"] == 0
+    for it, remaining, one, hundred in asked:
+        assert 0 < remaining < 600 and 0 < one < hundred
+    assert info["iterations_run"] == 400 and info["iterations_planned"] == 400
+    assert t.densifier.config.stop == final["at"]
+    assert t.optimizer.lr("positions", 400) == pytest.approx(0.1 * t.optimizer.lr0["positions"])
+    assert t.views.iterations == 400 and replans_done(info["time_plan"])
 
 
 def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
@@ -197,9 +242,9 @@ def test_the_loop_stops_at_its_share_of_the_budget(tiny_case, monkeypatch):
 
 
 def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, crash_after):
-    """Planned 90 (densification ends at 45), re-planned there to 110, checkpointed at 60,
-    crashed at 70: the resumed run keeps both (a machine of another speed would plan
-    otherwise) and ends at 110."""
+    """Planned 90, re-planned to 110 at every densification iteration (the window then ends
+    at 55) and once more at 55, checkpointed at 60, crashed at 70: the resumed run replays
+    the recorded plan (a machine of another speed would plan otherwise) and ends at 110."""
     monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 90)
     monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 110)
     cfg = make_config("gr", time_budget=600, **{**TINY, "checkpoint_every": 30})
@@ -208,12 +253,15 @@ def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, c
     monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 700)
     t = Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
     assert t.state.iteration == 60 and t.iterations == 110
-    assert t.densifier.config.stop == 45 and t.optimizer.knot[0] == 45
+    assert t.densifier.config.stop == 55 and t.optimizer.knots[-1][0] == 55
     assert t.optimizer.max_steps == 110 and t.views.iterations == 110
+    knots = list(t.optimizer.knots)
     info = t.run()
     assert info["iterations_run"] == 110
     assert info["time_plan"]["iterations"] == 90
-    assert info["time_plan"]["replanned"] == {"at": 45, "iterations": 110}
+    final = info["time_plan"]["replans"][-1]
+    assert (final["at"], final["iterations"], final["final"]) == (55, 110, True)
+    assert [r["at"] for r in info["time_plan"]["replans"]] == [k[0] for k in knots]
 
 
 def test_a_budget_too_small_for_one_evaluation_is_a_clear_error(tiny_case):

@@ -17,11 +17,16 @@ With ``time_budget = SECONDS`` the trainer does not take its iteration count fro
    (the budget minus the time already spent on De-Init and the probe, minus ``RESERVE`` of
    the budget for writing the result); the schedule (densification window, learning-rate
    decay, evaluation interval, held-out window) scales with I as it does with the rule's;
-4. when densification ends (half-way through the schedule) the Gaussian count is final and
-   the loop's own pace is known: ``replan`` sets the rest of the run from the measured
-   seconds per iteration (the learning-rate decay is stretched or shrunk to the new end
-   without a jump: ``Adam.rehorizon``; the densification window is over, the evaluation
-   interval stays, the held-out window moves with the new count);
+4. the plan is then corrected from the loop's own clock (``rest_seconds``): at every
+   densification iteration the rest of the run is re-priced from the measured seconds per
+   iteration and Gaussian and the count's recent growth, extrapolated linearly (up to the
+   cap) to the end of the window, which moves with the new count (the scaled schedule's
+   densify_stop); when densification ends the count is final and the rest is re-planned
+   once more at the measured pace. Without these corrections a large grid, whose count
+   stays far below the cap (256^3: about 85k of 500k), would be planned several times
+   too short. Every re-plan stretches or shrinks the learning-rate decay to the new end
+   without a jump (``Adam.rehorizon``) and moves the held-out window with it; the
+   densification and evaluation intervals stay as first planned;
 5. the loop also stops when its wall clock reaches its share, whatever the plan said
    ("time budget ... reached"), so the budget holds on a machine that slows down mid-run.
 
@@ -33,6 +38,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+
+import numpy as np
 
 from mi_grg.training.densify import densify_iterations
 
@@ -155,3 +162,57 @@ def replan(iteration: int, remaining_seconds: float, price_rest) -> int:
     if price_rest(iteration + 1) > room:
         return iteration + 1
     return _largest(iteration + 1, lambda i: price_rest(i) <= room)
+
+
+@dataclass(frozen=True)
+class LoopPace:
+    """What the loop measured when a re-plan is made at iteration ``at``.
+
+    per_gaussian: seconds per iteration and Gaussian (the recent mean step over the recent
+    mean count: a step is priced linearly in the count, which over-estimates, as
+    ``loop_seconds`` does); n: the count now; growth: Gaussians added per iteration
+    recently (0 once densification is over); cap: the densification cap;
+    rebuild / evaluation: seconds per Gaussian of one densification + graph rebuild and of
+    one held-out evaluation (the probe's, scaled from its count)."""
+    at: int
+    per_gaussian: float
+    n: int
+    growth: float
+    cap: int
+    rebuild: float
+    evaluation: float
+
+
+def rest_seconds(pace: LoopPace, iterations: int, densify_stop: int, densify: range,
+                 evaluations: int) -> float:
+    """Price of iterations ``pace.at`` + 1 .. ``iterations`` when densification goes on
+    until ``densify_stop`` (exclusive) at the densification iterations ``densify`` and
+    ``evaluations`` held-out evaluations remain: the count grows linearly at the recent
+    rate, up to the cap, while the window is open (densification slows down as it goes, so
+    this over-estimates) and stays where it got to after it; each evaluation is priced at
+    the final count."""
+    if iterations <= pace.at:
+        return 0.0
+
+    def count(t):
+        grown = pace.growth * (np.minimum(t, densify_stop) - pace.at)
+        return np.minimum(float(pace.cap), pace.n + np.maximum(grown, 0.0))
+    steps = count(np.arange(pace.at + 1, iterations + 1, dtype=np.float64))
+    events = np.asarray([t for t in densify if t > pace.at], np.float64)
+    return float(pace.per_gaussian * steps.sum() + pace.rebuild * count(events).sum()
+                 + pace.evaluation * evaluations * count(float(iterations)))
+
+
+def replans_of(plan: dict | None) -> list:
+    """The re-plans recorded in a time plan, in order (a plan written before the re-plans
+    moved with densification kept only the final one, as ``replanned``)."""
+    if not plan:
+        return []
+    if "replanned" in plan:
+        return [dict(plan["replanned"], final=True)]
+    return list(plan.get("replans", []))
+
+
+def replans_done(plan: dict) -> bool:
+    """Whether the final re-plan (made when densification ended) has been made."""
+    return any(r.get("final") for r in replans_of(plan))

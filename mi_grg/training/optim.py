@@ -21,7 +21,8 @@ value over ``max_steps`` steps and stays there (3DGS/R2-Gaussian ``get_expon_lr_
 
 ``rehorizon(at, max_steps)`` moves the end of the decay during a run (a run planned to a
 time budget, mi_grg.training.budget): from step ``at`` on, the exponent goes on from its
-value there and reaches 1 at the new ``max_steps``, so the rate never jumps.
+value there and reaches 1 at the new ``max_steps``, so the rate never jumps. It may be
+called again at later steps (each call adds a knot; the exponent is piecewise linear).
 
 The update is PyTorch's Adam (no weight decay, no amsgrad), which R2-Gaussian uses:
 
@@ -102,7 +103,7 @@ class Adam:
         self.betas = (b1, b2)
         self.eps = float(eps)
         self.max_steps = int(max_steps)
-        self.knot = None        # (step, exponent) where rehorizon() moved the decay's end
+        self.knots = []         # [(step, exponent)] where rehorizon() moved the decay's end
         self.final_ratio = float(final_ratio)
         self.check_finite = bool(check_finite)
         self.state: dict[str, GroupState] = {}   # created on a group's first step
@@ -128,10 +129,12 @@ class Adam:
     def _exponent(self, step: int | float) -> float:
         """How far the decay is at ``step``: 0 at the start, 1 from ``max_steps`` on."""
         t = min(max(float(step), 0.0), float(self.max_steps))
-        if self.knot is None:
-            return t / self.max_steps
-        t0, e0 = self.knot
-        return t * e0 / t0 if t <= t0 else e0 + (1.0 - e0) * (t - t0) / (self.max_steps - t0)
+        t0, e0 = 0.0, 0.0
+        for t1, e1 in self.knots + [(self.max_steps, 1.0)]:
+            if t <= t1:
+                return e0 + (e1 - e0) * (t - t0) / (t1 - t0)
+            t0, e0 = t1, e1
+        return 1.0
 
     def rehorizon(self, at: int, max_steps: int) -> None:
         """From step ``at`` on, decay to ``final_ratio`` by step ``max_steps`` instead,
@@ -140,9 +143,14 @@ class Adam:
         if not 0 < at < max_steps:
             raise AdamError(f"rehorizon needs 0 < at < max_steps, got at={at}, "
                             f"max_steps={max_steps}")
-        if self.knot is not None:
-            raise AdamError(f"the decay was moved once already (at step {self.knot[0]})")
-        self.knot, self.max_steps = (at, self._exponent(at)), max_steps
+        if self.knots and at <= self.knots[-1][0]:
+            raise AdamError(f"rehorizon steps must increase: at={at} after a move at step "
+                            f"{self.knots[-1][0]}")
+        if at >= self.max_steps:
+            raise AdamError(f"rehorizon at step {at}: the decay already ended at step "
+                            f"{self.max_steps}")
+        self.knots.append((at, self._exponent(at)))
+        self.max_steps = max_steps
 
     def step_count(self, name: str) -> int:
         self._check_name(name)

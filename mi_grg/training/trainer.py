@@ -33,9 +33,11 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
+from mi_grg.training.budget import replans_done, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
 from mi_grg.training.config import TrainConfig, make_config
+from mi_grg.training.densify import densify_iterations
 from mi_grg.training.early_stop import EarlyStopper
 from mi_grg.training.views import ViewProtocol, stop_from
 
@@ -160,8 +162,8 @@ class Trainer:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
-            if plan is not None and plan.get("replanned"):
-                self._set_rest_of_run(**plan["replanned"])
+            for r in replans_of(plan):
+                self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
         else:
             if resume and self.checkpoint_path is not None:
                 print(f"no checkpoint in {self.out}; starting from scratch")
@@ -218,33 +220,56 @@ class Trainer:
         self._schedule(self.time_plan["iterations"])
 
     def _replan(self, it: int, seconds: float, n: int) -> None:
-        """Densification is over at ``it``: plan the rest of the run from the loop's
-        measured pace (mi_grg.training.budget.replan) and record it in the time plan."""
-        from mi_grg.training.budget import measured_pace, replan
-        plan = self.time_plan
-        window = max(1, min(200, it // 4))      # the last quarter, at most 200 iterations
-        clock = [r["seconds"] for r in self.state.log[-window:]] + [seconds]
-        pace = measured_pace(clock)
-        evaluation = plan["probe"]["evaluation"] * max(1.0, n / plan["probe"]["n"])
-        every = self.sched["eval_every"]
+        """Re-plan the rest of a time_budget run at ``it`` from the loop's own clock
+        (mi_grg.training.budget.rest_seconds): at every densification iteration, the
+        count's recent growth priced up to the end of the window, which moves with the new
+        count; when densification ends (N final), once more at the measured pace. Each
+        re-plan is recorded in the time plan (``replans``), so that a resume replays them."""
+        from mi_grg.training.budget import LoopPace, measured_pace, replan, rest_seconds
+        plan, sched = self.time_plan, self.sched
+        rows = self.state.log[-max(1, min(200, it // 4)):]   # the last quarter, <= 200 its
+        if not rows:
+            return
+        final = it >= sched["densify_stop"]
+        counts = [r["n_gaussians"] for r in rows]
+        step = measured_pace([r["seconds"] for r in rows] + [seconds])
+        growth = 0.0 if final else max(0.0, (n - counts[0]) / max(1, it - rows[0]["iteration"]))
+        probe = plan["probe"]
+        pace = LoopPace(at=it, per_gaussian=step / (sum(counts) / len(counts)), n=n,
+                        growth=growth, cap=probe["cap"], rebuild=probe["rebuild"] / probe["n"],
+                        evaluation=probe["evaluation"] / probe["n"])
+        every = sched["eval_every"]
+
+        def stop_for(iterations: int) -> int:
+            return sched["densify_stop"] if final else \
+                max(it + 1, _scaled(self.cfg, iterations)["densify_stop"])
 
         def price_rest(iterations: int) -> float:
+            stop = stop_for(iterations)
             window = dataclasses.replace(self.views, iterations=iterations).window_end
             evals = max(0, window // every - it // every) + 1
-            return (iterations - it) * pace + evals * evaluation
+            events = densify_iterations(sched["densify_start"], stop, sched["densify_interval"],
+                                        iterations)
+            return rest_seconds(pace, iterations, stop, events, evals)
         iterations = replan(it, plan["loop_budget_seconds"] - seconds, price_rest)
-        plan["replanned"] = {"at": it, "iterations": iterations}
-        plan["replan_pace"] = {"seconds_per_iteration": round(pace, 5),
-                               "evaluation_seconds": round(evaluation, 4)}
-        self._set_rest_of_run(it, iterations)
+        stop = None if final else stop_for(iterations)
+        plan.setdefault("replans", []).append(
+            {"at": it, "iterations": iterations, "densify_stop": stop, "final": final, "n": n,
+             "seconds_per_iteration": round(step, 5), "growth_per_iteration": round(growth, 2)})
+        self._set_rest_of_run(it, iterations, stop)
 
-    def _set_rest_of_run(self, at: int, iterations: int) -> None:
-        """The run ends at ``iterations`` instead (decided at iteration ``at``, after
-        densification): the held-out window moves with it, the learning-rate decay is
-        stretched to it without a jump."""
+    def _set_rest_of_run(self, at: int, iterations: int, densify_stop: int | None = None) -> None:
+        """The run ends at ``iterations`` instead (decided at iteration ``at``): the held-out
+        window moves with it, the learning-rate decay is stretched to it without a jump, and
+        (while densifying) the window ends at ``densify_stop``. The densification and
+        evaluation intervals stay as first planned."""
         self.iterations = int(iterations)
         self.views = dataclasses.replace(self.views, iterations=self.iterations)
         self.optimizer.rehorizon(at, self.iterations)
+        if densify_stop is not None:
+            self.sched["densify_stop"] = int(densify_stop)
+            self.densifier.config = dataclasses.replace(self.densifier.config,
+                                                        stop=int(densify_stop))
 
     def _probe(self, g: Gaussians, steps: int = 8) -> dict:
         """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
@@ -364,13 +389,14 @@ class Trainer:
         while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
             it = st.iteration + 1
             raw, loss_value = self._step(it, raw)
-            if self.densifier.is_densify_iteration(it):
+            densified = self.densifier.is_densify_iteration(it)
+            if densified:
                 raw = self._densify_and_rebuild(it, raw)
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            if (self.time_plan is not None and "replanned" not in self.time_plan
-                    and it == self.sched["densify_stop"]):
+            if (self.time_plan is not None and not replans_done(self.time_plan)
+                    and (densified or it == self.sched["densify_stop"])):
                 self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
                 bar.total = self.iterations
             raw = self._evaluate(it, raw, row)
