@@ -36,9 +36,11 @@ def test_loop_seconds_counts_what_the_loop_does(iterations):
     window = iterations // 2
     n_eval = sum(1 for it in range(1, window + 1) if it % s["eval_every"] == 0) + 1
     pre = min(iterations, s["densify_start"])
-    costs = ProbeCosts(step=0.1, evaluation=0.3, rebuild=0.7, n=1000, cap=2500)
+    costs = ProbeCosts(step=0.1, evaluation=0.3, rebuild=0.7, n=1000, cap=2500, log_3d=0.9)
     want = pre * 0.1 + (iterations - pre) * 0.25 + n_dens * 1.75 + n_eval * 0.75
     assert loop_seconds(iterations, s, window, costs) == pytest.approx(want)
+    assert loop_seconds(iterations, s, window, costs, logs_3d=7) == pytest.approx(
+        want + 7 * 0.9 * 2.5)
     # a cap below the probe's count never makes an iteration cheaper than the probe's
     low = dataclasses.replace(costs, cap=10)
     assert loop_seconds(iterations, s, window, low) == pytest.approx(
@@ -70,15 +72,15 @@ def test_rest_seconds_against_an_iteration_by_iteration_count(growth, stop, iter
     """The rest's price against a loop that grows the count at every iteration of the open
     window (capped), pays each step, each densification and each evaluation at the count."""
     pace = LoopPace(at=250, per_gaussian=2e-6, n=60000, growth=growth, cap=400000,
-                    rebuild=1e-5, evaluation=3e-6)
+                    rebuild=1e-5, evaluation=3e-6, log_3d=5e-5)
     events = range(275, min(stop, iterations + 1), 25)
     n, total = float(pace.n), 0.0
     for t in range(pace.at + 1, iterations + 1):
         if t <= stop:
             n = min(pace.cap, n + growth)
         total += pace.per_gaussian * n + (pace.rebuild * n if t in events else 0.0)
-    total += 4 * pace.evaluation * n
-    assert rest_seconds(pace, iterations, stop, events, 4) == pytest.approx(total, rel=1e-9)
+    total += (4 * pace.evaluation + 3 * pace.log_3d) * n
+    assert rest_seconds(pace, iterations, stop, events, 4, 3) == pytest.approx(total, rel=1e-9)
 
 
 def test_replans_of_reads_a_plan_written_before_the_window_replans():
@@ -262,6 +264,37 @@ def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, c
     final = info["time_plan"]["replans"][-1]
     assert (final["at"], final["iterations"], final["final"]) == (55, 110, True)
     assert [r["at"] for r in info["time_plan"]["replans"]] == [k[0] for k in knots]
+
+
+def test_a_budget_counts_the_3d_log_on_its_clock(tiny_case, monkeypatch):
+    """A time budget is wall clock: the research log's 3-D PSNR (here made to take 1 s)
+    counts in a budget run's loop clock and is priced by the probe; a run without a budget
+    leaves it out of its clock (train_seconds)."""
+    import time
+
+    from mi_grg.evaluation import metrics
+    real = metrics.psnr_3d
+
+    def slow(*a, **k):
+        time.sleep(1.0)
+        return real(*a, **k)
+    monkeypatch.setattr(metrics, "psnr_3d", slow)
+    monkeypatch.setattr(budget, "plan_iterations", lambda loop_budget, price: 100)
+    monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 100)
+    cfg = dict(TINY, eval_every=500, log_3d_every=40)
+
+    def steps_after_logs(t):
+        log = t.state.log
+        return [b["seconds"] - a["seconds"] for a, b in zip(log, log[1:]) if "psnr_3d" in a]
+    t = Trainer(tiny_case, make_config("r2", time_budget=600, **cfg), progress=False)
+    assert t.time_plan["probe"]["log_3d"] >= 1.0
+    t.run()
+    after = steps_after_logs(t)
+    assert len(after) == 2 and min(after) >= 1.0          # logs at 40 and 80 (and 100)
+    ref = Trainer(tiny_case, make_config("r2", iterations=100, **cfg), progress=False)
+    ref.run()
+    after = steps_after_logs(ref)
+    assert len(after) == 2 and max(after) < 1.0
 
 
 def test_a_budget_too_small_for_one_evaluation_is_a_clear_error(tiny_case):

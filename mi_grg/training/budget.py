@@ -30,8 +30,11 @@ With ``time_budget = SECONDS`` the trainer does not take its iteration count fro
 5. the loop also stops when its wall clock reaches its share, whatever the plan said
    ("time budget ... reached"), so the budget holds on a machine that slows down mid-run.
 
-The budget covers the trainer, from De-Init to the returned state's files; the volume and
-scores that ``mi_grg.reconstruct`` computes afterwards are not part of it.
+The budget covers the trainer, from De-Init to the returned state's files, on the wall
+clock: in a time_budget run the research log's 3-D PSNR (when the case has a ground truth)
+counts and is priced (at 256^3 one costs about 11 s; elsewhere the trainer leaves it out
+of ``train_seconds``); the volume and scores that ``mi_grg.reconstruct`` computes
+afterwards are not part of it (``RESERVE`` leaves room for them).
 metrics.json ``method_info.time_plan`` records the probe, the plan and the loop's share.
 """
 from __future__ import annotations
@@ -61,15 +64,17 @@ class ProbeCosts:
     """Seconds measured by the probe on ``n`` Gaussians; ``cap``: the densification cap.
 
     step: one training iteration (its TV share included); evaluation: one held-out
-    evaluation (0 without held-out views); rebuild: one graph rebuild (0 without a graph)."""
+    evaluation (0 without held-out views); rebuild: one graph rebuild (0 without a graph);
+    log_3d: one 3-D PSNR of the research log (volume + score; 0 without a ground truth)."""
     step: float
     evaluation: float
     rebuild: float
     n: int
     cap: int
+    log_3d: float = 0.0
 
     def __post_init__(self):
-        for name in ("step", "evaluation", "rebuild"):
+        for name in ("step", "evaluation", "rebuild", "log_3d"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"probe {name} seconds must be finite and >= 0, got {v}")
@@ -82,17 +87,20 @@ class ProbeCosts:
         return max(1.0, self.cap / self.n)
 
 
-def loop_seconds(iterations: int, schedule: dict, window_end: int, costs: ProbeCosts) -> float:
+def loop_seconds(iterations: int, schedule: dict, window_end: int, costs: ProbeCosts,
+                 logs_3d: int = 0) -> float:
     """Price of a training loop of ``iterations`` with the scaled ``schedule``
     (densify_start / densify_stop / densify_interval / eval_every, as ``trainer._scaled``
-    returns) and held-out evaluations up to ``window_end`` (and one at the end)."""
+    returns), held-out evaluations up to ``window_end`` (and one at the end) and
+    ``logs_3d`` 3-D PSNR logs."""
     start = min(schedule["densify_start"], iterations)
     densify = len(densify_iterations(schedule["densify_start"], schedule["densify_stop"],
                                      schedule["densify_interval"], iterations))
     evaluations = window_end // schedule["eval_every"] + 1
     g = costs.growth
     return (start * costs.step + (iterations - start) * g * costs.step
-            + densify * g * costs.rebuild + evaluations * g * costs.evaluation)
+            + densify * g * costs.rebuild + evaluations * g * costs.evaluation
+            + logs_3d * g * costs.log_3d)
 
 
 def plan_iterations(loop_budget: float, price) -> int | None:
@@ -172,8 +180,9 @@ class LoopPace:
     mean count: a step is priced linearly in the count, which over-estimates, as
     ``loop_seconds`` does); n: the count now; growth: Gaussians added per iteration
     recently (0 once densification is over); cap: the densification cap;
-    rebuild / evaluation: seconds per Gaussian of one densification + graph rebuild and of
-    one held-out evaluation (the probe's, scaled from its count)."""
+    rebuild / evaluation / log_3d: seconds per Gaussian of one densification + graph
+    rebuild (as measured on the loop's densification iterations), of one held-out
+    evaluation and of one 3-D PSNR log (the probe's, scaled from its count)."""
     at: int
     per_gaussian: float
     n: int
@@ -181,16 +190,17 @@ class LoopPace:
     cap: int
     rebuild: float
     evaluation: float
+    log_3d: float = 0.0
 
 
 def rest_seconds(pace: LoopPace, iterations: int, densify_stop: int, densify: range,
-                 evaluations: int) -> float:
+                 evaluations: int, logs_3d: int = 0) -> float:
     """Price of iterations ``pace.at`` + 1 .. ``iterations`` when densification goes on
     until ``densify_stop`` (exclusive) at the densification iterations ``densify`` and
-    ``evaluations`` held-out evaluations remain: the count grows linearly at the recent
-    rate, up to the cap, while the window is open (densification slows down as it goes, so
-    this over-estimates) and stays where it got to after it; each evaluation is priced at
-    the final count."""
+    ``evaluations`` held-out evaluations and ``logs_3d`` 3-D PSNR logs remain: the count
+    grows linearly at the recent rate, up to the cap, while the window is open
+    (densification slows down as it goes, so this over-estimates) and stays where it got
+    to after it; each evaluation and log is priced at the final count."""
     if iterations <= pace.at:
         return 0.0
 
@@ -200,7 +210,8 @@ def rest_seconds(pace: LoopPace, iterations: int, densify_stop: int, densify: ra
     steps = count(np.arange(pace.at + 1, iterations + 1, dtype=np.float64))
     events = np.asarray([t for t in densify if t > pace.at], np.float64)
     return float(pace.per_gaussian * steps.sum() + pace.rebuild * count(events).sum()
-                 + pace.evaluation * evaluations * count(float(iterations)))
+                 + (pace.evaluation * evaluations + pace.log_3d * logs_3d)
+                 * count(float(iterations)))
 
 
 def replans_of(plan: dict | None) -> list:

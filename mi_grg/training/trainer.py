@@ -214,7 +214,8 @@ class Trainer:
             s = _scaled(self.cfg, iterations)
             window = dataclasses.replace(self.views, iterations=iterations,
                                          eval_every=s["eval_every"]).window_end
-            return loop_seconds(iterations, s, window, costs)
+            return loop_seconds(iterations, s, window, costs,
+                                self._logs_3d(iterations, 0, s["eval_every"]))
         self.state.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
                                          costs, price)
         self._schedule(self.time_plan["iterations"])
@@ -232,12 +233,23 @@ class Trainer:
             return
         final = it >= sched["densify_stop"]
         counts = [r["n_gaussians"] for r in rows]
-        step = measured_pace([r["seconds"] for r in rows] + [seconds])
+        clock = [r["seconds"] for r in rows] + [seconds]
+        step = measured_pace(clock)
         growth = 0.0 if final else max(0.0, (n - counts[0]) / max(1, it - rows[0]["iteration"]))
         probe = plan["probe"]
+        # A densification iteration's extra time, measured (the probe times only the graph
+        # rebuild): its step beyond the pace, per Gaussian. Step k runs iteration
+        # rows[k] + 1 on rows[k]'s count, after rows[k]'s evaluation (if any: left out).
+        extra = []
+        for k, prev in enumerate(rows):
+            if (self.densifier.is_densify_iteration(prev["iteration"] + 1)
+                    and "heldout_psnr" not in prev and "psnr_3d" not in prev):
+                extra.append((clock[k + 1] - clock[k] - step) / prev["n_gaussians"])
+        rebuild = max(probe["rebuild"] / probe["n"], sum(extra) / len(extra) if extra else 0.0)
         pace = LoopPace(at=it, per_gaussian=step / (sum(counts) / len(counts)), n=n,
-                        growth=growth, cap=probe["cap"], rebuild=probe["rebuild"] / probe["n"],
-                        evaluation=probe["evaluation"] / probe["n"])
+                        growth=growth, cap=probe["cap"], rebuild=rebuild,
+                        evaluation=probe["evaluation"] / probe["n"],
+                        log_3d=probe.get("log_3d", 0.0) / probe["n"])
         every = sched["eval_every"]
 
         def stop_for(iterations: int) -> int:
@@ -250,7 +262,8 @@ class Trainer:
             evals = max(0, window // every - it // every) + 1
             events = densify_iterations(sched["densify_start"], stop, sched["densify_interval"],
                                         iterations)
-            return rest_seconds(pace, iterations, stop, events, evals)
+            return rest_seconds(pace, iterations, stop, events, evals,
+                                self._logs_3d(iterations, it, every))
         iterations = replan(it, plan["loop_budget_seconds"] - seconds, price_rest)
         stop = None if final else stop_for(iterations)
         plan.setdefault("replans", []).append(
@@ -293,15 +306,29 @@ class Trainer:
             for it in range(3, 3 + steps):
                 raw, _ = self._step(it, raw)
             step = (time.perf_counter() - t) / steps
-            evaluation = 0.0
+            evaluation = log_3d = 0.0
             if len(self.held_idx):
                 for _ in range(2):
                     t = time.perf_counter()
                     self._heldout_psnr(raw)
                     evaluation = time.perf_counter() - t
+            if self.case.vol_gt is not None:
+                from mi_grg.evaluation.metrics import psnr_3d
+                for _ in range(2):
+                    t = time.perf_counter()
+                    psnr_3d(self.volume(raw, self._density_scale), self.case.vol_gt)
+                    log_3d = time.perf_counter() - t
         finally:
             self.rng, self.graph, self._density_scale = rng, None, None
-        return {"step": step, "evaluation": evaluation, "rebuild": rebuild}
+        return {"step": step, "evaluation": evaluation, "rebuild": rebuild, "log_3d": log_3d}
+
+    def _logs_3d(self, iterations: int, after: int, eval_every: int) -> int:
+        """How many 3-D PSNR logs (``_evaluate``) iterations after+1 .. ``iterations``
+        make: one every ``log_3d_every`` (else at every evaluation), one at the end."""
+        if self.case.vol_gt is None:
+            return 0
+        every = self.cfg.log_3d_every or eval_every
+        return max(0, iterations // every - after // every) + 1
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
@@ -488,12 +515,14 @@ class Trainer:
             (it % cfg.log_3d_every == 0 if cfg.log_3d_every else is_eval)
             or (cfg.monitor_3d and is_eval))
         if want_3d:
-            # Research logging: not counted in the training time.
+            # Research logging: not counted in the training time, except against a time
+            # budget, which is wall clock (mi_grg.training.budget prices it)
             t3 = time.perf_counter()
             from mi_grg.evaluation.metrics import psnr_3d
             row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
                                            self.case.vol_gt))
-            self._t_start += time.perf_counter() - t3
+            if cfg.time_budget is None:
+                self._t_start += time.perf_counter() - t3
         # A held-out view is judged only while none of them has been trained on.
         if not is_eval or not (cfg.monitor_3d or self.views.decides(it, self._stop)):
             return raw
