@@ -1,13 +1,14 @@
 """The paper's size on this CPU: gr on a 256^3 case end to end (issue 21: <= 60 min, <= 8 GB).
 
     .venv/bin/python bench/paper_size.py [--n 256] [--budget 3300] [--method gr]
-    .venv/bin/python bench/paper_size.py --collect RUN_DIR --time-log LOG
+    .venv/bin/python bench/paper_size.py --collect RUN_DIR --time-log LOG [--fdk FDK_DIR]
 
 The run is what a user types (the shepp phantom, 25 noisy cone-beam views of 1.5 n pixels,
 25 noise-free test views, seed 0), timed as one process:
 
     mi-grg simulate --phantom shepp --n 256 --det 384 --views 25 --test-views 25 --out DATA
     mi-grg reconstruct DATA --method gr --option time_budget=3300 --out RUN
+    mi-grg reconstruct DATA --method fdk --out FDK_DIR        # the De-Init input, for scale
 
 with the iteration count planned to the budget (``mi_grg.training.budget``; the rule's 6000
 iterations at 256^3 were never timed here). Peak memory is the reconstruct process's
@@ -51,13 +52,23 @@ def run(n: int, budget: float, method: str, work: Path) -> dict:
                              f"time_budget={budget:g}", "--out", str(out)], check=True)
     t2 = time.perf_counter()
     # ru_maxrss of the children: the largest of the two processes (KiB on Linux)
-    peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+    peak_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+    subprocess.run(_cli() + ["reconstruct", str(data), "--method", "fdk", "--out",
+                             str(work / "fdk")], check=True)
     return {"simulate_s": round(t1 - t0, 1), "reconstruct_wall_s": round(t2 - t1, 1),
-            "peak_rss_gb": round(peak_gb, 2), "load_1min": round(load, 2),
-            **_metrics(out)}
+            "peak_rss_gib": round(peak_gib, 2), "load_1min": round(load, 2),
+            **_metrics(out), "fdk": _fdk(work / "fdk")}
 
 
-def collect(run_dir: Path, time_log: Path) -> dict:
+def _fdk(out: Path | None):
+    if out is None:
+        return None
+    m = json.loads((out / "metrics.json").read_text())
+    return {"psnr_3d": round(m["psnr_3d"], 2), "ssim_3d": round(m["ssim_3d"], 4),
+            "seconds": round(m["seconds"], 1)}
+
+
+def collect(run_dir: Path, time_log: Path, fdk_dir: Path | None) -> dict:
     text = time_log.read_text(errors="replace")
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", text)
     wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([\d:.]+)", text)
@@ -67,7 +78,8 @@ def collect(run_dir: Path, time_log: Path) -> dict:
     for part in wall.group(1).split(":"):
         secs = 60 * secs + float(part)
     return {"reconstruct_wall_s": round(secs, 1),
-            "peak_rss_gb": round(int(rss.group(1)) / 2**20, 2), **_metrics(run_dir)}
+            "peak_rss_gib": round(int(rss.group(1)) / 2**20, 2), **_metrics(run_dir),
+            "fdk": _fdk(fdk_dir)}
 
 
 def _metrics(out: Path) -> dict:
@@ -81,7 +93,8 @@ def _metrics(out: Path) -> dict:
             "psnr_3d": round(m["psnr_3d"], 2), "ssim_3d": round(m["ssim_3d"], 4),
             "seconds": round(m["seconds"], 1), "train_seconds": round(info["train_seconds"], 1),
             "iterations_run": info["iterations_run"], "stopped_by": info["stopped_by"],
-            "first_plan": plan.get("iterations"), "setup_s": plan.get("setup_seconds"),
+            "first_plan": plan.get("iterations"),
+            "last_plan": replans[-1]["iterations"] if replans else plan.get("iterations"), "setup_s": plan.get("setup_seconds"),
             "window_replans": len(window),
             "densification_ended_at": final[0]["at"] if final else None,
             "final_gaussians": final[0]["n"] if final else None,
@@ -99,13 +112,17 @@ def markdown(r: dict) -> str:
         f"| reconstruct, wall clock (De-Init, training, volume, scores, files) | "
         f"{x['reconstruct_wall_s'] / 60:.1f} min ({x['reconstruct_wall_s']:.0f} s) |",
         f"| of which training (metrics.json train_seconds) | {x['train_seconds']:.0f} s |",
-        f"| peak memory (max RSS) | {x['peak_rss_gb']:.2f} GB |",
-        f"| iterations: first plan -> run | {x['first_plan']} -> {x['iterations_run']} "
-        f"({x['stopped_by']}) |",
+        f"| peak memory (max RSS) | {x['peak_rss_gib']:.2f} GiB |",
+        f"| iterations: first plan -> last plan -> run | {x['first_plan']} -> "
+        f"{x['last_plan']} -> {x['iterations_run']} |",
+        f"| stopped by | {x['stopped_by']} |",
         f"| densification: re-plans while open, ended at | {x['window_replans']}, "
         f"iteration {x['densification_ended_at']} ({x['final_gaussians']} Gaussians) |",
         f"| seconds per iteration after densification | {x['seconds_per_iteration']} |",
         f"| 3-D PSNR / SSIM | {x['psnr_3d']:.2f} dB / {x['ssim_3d']:.3f} |",
+        (f"| FDK on the same data (De-Init's input) | {x['fdk']['psnr_3d']:.2f} dB / "
+         f"{x['fdk']['ssim_3d']:.3f}, {x['fdk']['seconds']:.1f} s |" if x.get("fdk") else
+         "| FDK on the same data | not run |"),
         f"| the paper | {PAPER} |", ""])
 
 
@@ -116,11 +133,12 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="gr", choices=("gr", "r2"))
     ap.add_argument("--collect", type=Path, help="a finished run's folder (with --time-log)")
     ap.add_argument("--time-log", type=Path, help="/usr/bin/time -v output of that run")
+    ap.add_argument("--fdk", type=Path, help="with --collect: an fdk run on the same data")
     args = ap.parse_args(argv)
     if args.collect:
         if not args.time_log:
             ap.error("--collect needs --time-log")
-        result = collect(args.collect, args.time_log)
+        result = collect(args.collect, args.time_log, args.fdk)
     else:
         work = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "paper_size"
         result = run(args.n, args.budget, args.method, work)
