@@ -45,8 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--log-every", type=int, default=250)
     ap.add_argument("--suite", default=str(ROOT / "experiments" / "suite_cpu.json"))
     args = ap.parse_args(argv)
-    from mi_grg.data.dataset import load_case
-    from mi_grg.lab.runner import simulate_data
+    from mi_grg.lab.runner import suite_case
     from mi_grg.lab.suite import load_suite
     from mi_grg.methods import code_version, reconstruct
     suite = load_suite(args.suite)
@@ -54,11 +53,7 @@ def main(argv=None) -> int:
     root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "dense_volumes"
     rows = []
     for name in args.cases.split(","):
-        spec = suite.case(name)
-        d = root / spec.data_dir_name
-        if not (d / "meta_data.json").exists():
-            simulate_data(spec, d)
-        case = load_case(d)
+        case = suite_case(suite.case(name), root)
         for variant, options in parse_variants(args.variants):
             load = os.getloadavg()[0]
             t0 = time.perf_counter()

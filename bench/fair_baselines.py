@@ -47,19 +47,14 @@ def main(argv=None) -> int:
         (ROOT / "docs" / "bench" / "fair_baselines.md").write_text(markdown(result))
         print(markdown(result))
         return 0
-    from mi_grg.data.dataset import load_case
-    from mi_grg.lab.runner import simulate_data
+    from mi_grg.lab.runner import suite_case
     from mi_grg.lab.suite import load_suite
     from mi_grg.methods import reconstruct
     suite = load_suite(args.suite)
     data_root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "fair_baselines"
     rows = []
     for name in args.cases.split(","):
-        spec = suite.case(name)
-        d = data_root / spec.data_dir_name
-        if not (d / "meta_data.json").exists():
-            simulate_data(spec, d)
-        case = load_case(d)
+        case = suite_case(suite.case(name), data_root)
         for run, method, opts in RUNS:
             secs, load = [], []
             for _ in range(max(1, args.reps)):

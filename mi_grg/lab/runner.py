@@ -95,6 +95,16 @@ def simulate_data(case: CaseSpec, data_dir) -> Path:
     return data_dir
 
 
+def suite_case(case: CaseSpec, root):
+    """The Case of suite case ``case``, from ``root`` / its data folder, simulated there
+    first when missing (benchmarks that run outside the runner's plan)."""
+    from mi_grg.data.dataset import load_case
+    d = Path(root) / case.data_dir_name
+    if not (d / "meta_data.json").exists():
+        simulate_data(case, d)
+    return load_case(d)
+
+
 def _simulate_task(task: dict) -> dict:
     t0 = time.perf_counter()
     try:

@@ -112,6 +112,14 @@ def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     return out
 
 
+def _second_of_two(fn) -> float:
+    """Seconds of the second of two calls of ``fn`` (the first traces and compiles)."""
+    fn()
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
 # ---------------------------------------------------------------------------- training
 class Trainer:
     """One training run on a case. Construct, then ``run()``; see the module docstring."""
@@ -286,8 +294,8 @@ class Trainer:
 
     def _probe(self, g: Gaussians, steps: int = 8) -> dict:
         """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
-        compile the kernels), one held-out evaluation and one graph rebuild (each the
-        second of two), on a copy of ``g`` with the current (provisional) optimiser and
+        compile the kernels), one held-out evaluation, one graph rebuild and one 3-D PSNR
+        log (each the second of two), on a copy of ``g`` with the current (provisional) optimiser and
         densifier, which ``_schedule`` replaces afterwards; the run's RNG is not drawn."""
         raw = g.to_raw()
         for v in raw.values():
@@ -296,10 +304,7 @@ class Trainer:
         rebuild = 0.0
         try:
             if self.uses_graph:
-                for _ in range(2):
-                    t = time.perf_counter()
-                    self._rebuild_graph(raw["positions"])
-                    rebuild = time.perf_counter() - t
+                rebuild = _second_of_two(lambda: self._rebuild_graph(raw["positions"]))
             for it in (1, 2):
                 raw, _ = self._step(it, raw)
             t = time.perf_counter()
@@ -308,16 +313,11 @@ class Trainer:
             step = (time.perf_counter() - t) / steps
             evaluation = log_3d = 0.0
             if len(self.held_idx):
-                for _ in range(2):
-                    t = time.perf_counter()
-                    self._heldout_psnr(raw)
-                    evaluation = time.perf_counter() - t
+                evaluation = _second_of_two(lambda: self._heldout_psnr(raw))
             if self.case.vol_gt is not None:
                 from mi_grg.evaluation.metrics import psnr_3d
-                for _ in range(2):
-                    t = time.perf_counter()
-                    psnr_3d(self.volume(raw, self._density_scale), self.case.vol_gt)
-                    log_3d = time.perf_counter() - t
+                log_3d = _second_of_two(lambda: psnr_3d(self.volume(raw, self._density_scale),
+                                                        self.case.vol_gt))
         finally:
             self.rng, self.graph, self._density_scale = rng, None, None
         return {"step": step, "evaluation": evaluation, "rebuild": rebuild, "log_3d": log_3d}
