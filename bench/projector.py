@@ -1,9 +1,11 @@
-"""Benchmark of the radiative-Gaussian projector (mi_grg.core.projector) on the CPU (LLVM).
+"""Benchmark of the radiative-Gaussian projector (mi_grg.core.projector), CPU (LLVM) or GPU.
 
     .venv/bin/python bench/projector.py            # full grid (a few minutes on 2 cores)
     .venv/bin/python bench/projector.py --quick    # smoke run
+    .venv/bin/python bench/projector.py --variant cuda_ad_mono   # on a GPU
 
-Writes ``docs/bench/projector.json`` and ``docs/bench/projector.md``. Every configuration
+Writes ``docs/bench/projector.json`` and ``docs/bench/projector.md`` (``projector_cuda.*``
+with ``--variant cuda_ad_mono``, where peak RSS is host memory only). Every configuration
 runs in its own subprocess (peak memory = that process's ru_maxrss, which sees Dr.Jit's
 allocations). Times are medians of ``--runs`` calls after one warm-up call; the warm-up
 (JIT compilation or kernel-cache load) is reported separately.
@@ -259,8 +261,11 @@ WORKERS = {"grid": worker_grid, "phases": worker_phases, "extent": worker_extent
 
 
 # ====================================================================== driver side
+VARIANT = ["llvm_ad_mono"]   # set by --variant; every worker process runs on it
+
+
 def _spawn(kind, cfg, **env_extra):
-    env = dict(os.environ, MI_GRG_VARIANT="llvm_ad_mono", **env_extra)
+    env = dict(os.environ, MI_GRG_VARIANT=VARIANT[0], **env_extra)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, json.dumps(cfg)]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(ROOT))
     if res.returncode != 0:
@@ -275,7 +280,7 @@ def _fmt(x, unit=""):
 def _markdown(res) -> str:
     g = res["grid"]
     lines = ["# Projector benchmark (`bench/projector.py`)", "",
-             f"Machine: {res['machine']}. Variant llvm_ad_mono. Date {res['date']}. "
+             f"Machine: {res['machine']}. Variant {res.get('variant', 'llvm_ad_mono')}. Date {res['date']}. "
              f"Mode: {'quick' if res['quick'] else 'full'}; medians of {res['runs']} runs "
              "after one warm-up call.", "",
              "Workload: N Gaussians uniform in the unit ball, scale = 0.5 x mean 3-NN distance "
@@ -369,8 +374,10 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=None, help="timed runs per config (>= 3)")
     ap.add_argument("--out", default=None,
                     help="output folder (default docs/bench; --quick: a temporary folder)")
+    ap.add_argument("--variant", default="llvm_ad_mono", choices=("llvm_ad_mono", "cuda_ad_mono"))
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    VARIANT[0] = a.variant
     if a.worker:
         sys.path.insert(0, str(ROOT))
         import mi_grg  # noqa: F401  (before drjit: selects the LLVM library)
@@ -426,7 +433,15 @@ def main(argv=None):
         cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
     except (OSError, StopIteration):
         cpu = platform.processor()
-    res = {"machine": f"{cpu}, {os.cpu_count()} cores", "date": time.strftime("%Y-%m-%d"),
+    machine = f"{cpu}, {os.cpu_count()} cores"
+    if a.variant.startswith("cuda"):
+        try:
+            gpu = subprocess.check_output(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                          text=True).strip().splitlines()[0]
+        except (OSError, subprocess.CalledProcessError, IndexError):
+            gpu = "a CUDA GPU"
+        machine = f"{gpu} (host: {machine})"
+    res = {"machine": machine, "variant": a.variant, "date": time.strftime("%Y-%m-%d"),
            "quick": a.quick, "runs": runs, "extent": DEFAULT_EXTENT, "grid": grid,
            "multiview": multi, "cold": cold, "phases": phases, "phases_cfg": ph_cfg, "extents": extents,
            "extent_cfg": ext_cfg, "footprint": footprint, "footprint_cfg": fp_cfg,
@@ -440,7 +455,8 @@ def main(argv=None):
     else:
         out = ROOT / "docs" / "bench"
     out.mkdir(parents=True, exist_ok=True)
-    name = "projector_quick" if a.quick else "projector"
+    name = ("projector_quick" if a.quick else "projector") + \
+        ("_cuda" if a.variant.startswith("cuda") else "")
     (out / f"{name}.json").write_text(json.dumps(res, indent=1))
     (out / f"{name}.md").write_text(_markdown(res))
     print(_markdown(res))

@@ -3,6 +3,7 @@
     .venv/bin/python bench/train_step.py                      # 64^3 gr and r2, vs REFERENCE
     .venv/bin/python bench/train_step.py --sizes 64 128 --before 42a14d5
     .venv/bin/python bench/train_step.py --quick              # smoke run
+    .venv/bin/python bench/train_step.py --variant cuda_ad_mono --before none   # on a GPU
 
 State: a seeded 64^3 (or 128^3) Shepp-Logan case, 25 noisy views of 1.5 n pixels
 (bench/reconstruct.py's cells), trained with the method's defaults for ``--train-iters``
@@ -396,6 +397,8 @@ def main() -> int:
     ap.add_argument("--iters", type=int, default=10, help="timed iteration pairs per process")
     ap.add_argument("--rounds", type=int, default=2, help="before/after alternations")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--variant", default="llvm_ad_mono", choices=("llvm_ad_mono", "cuda_ad_mono"),
+                    help="every process runs on it; cuda writes train_step_cuda.{md,json}")
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench"))
     ap.add_argument("--worker", nargs=4, metavar=("METHOD", "N", "ITERS", "OUT"),
                     help=argparse.SUPPRESS)
@@ -412,6 +415,7 @@ def main() -> int:
         return 0
     if args.quick:
         args.iters, args.rounds = 3, 1
+    os.environ["MI_GRG_VARIANT"] = args.variant   # inherited by every process (_spawn)
     before = args.before
     codes = [("after", None)]
     if before.lower() != "none":
@@ -451,19 +455,21 @@ def main() -> int:
             or platform.machine(), "cpus": os.cpu_count(), "before": before,
             "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
                                                               _git("status", "--porcelain") else ""),
-            "iters_per_process": 2 * args.iters, "rounds": args.rounds}
+            "iters_per_process": 2 * args.iters, "rounds": args.rounds,
+            "variant": args.variant}
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
-    (outdir / "train_step.json").write_text(json.dumps({"meta": meta, "cells": cells}, indent=1))
-    (outdir / "train_step.md").write_text(_markdown(meta, cells))
-    print((outdir / "train_step.md").read_text())
+    name = "train_step" + ("_cuda" if args.variant.startswith("cuda") else "")
+    (outdir / f"{name}.json").write_text(json.dumps({"meta": meta, "cells": cells}, indent=1))
+    (outdir / f"{name}.md").write_text(_markdown(meta, cells))
+    print((outdir / f"{name}.md").read_text())
     return 0
 
 
 def _markdown(meta, cells) -> str:
     ms = lambda s: f"{1e3 * s:.1f}"  # noqa: E731
     lines = ["# One training iteration, split into its parts (`bench/train_step.py`)", "",
-             f"{meta['date']}, {meta['cpus']} CPUs ({meta['machine']}), llvm_ad_mono. "
+             f"{meta['date']}, {meta['cpus']} CPUs ({meta['machine']}), {meta.get('variant', 'llvm_ad_mono')}. "
              f"before = `{meta['before'][:10]}`, after = `{meta['after']}`. Each cell: "
              f"{meta['rounds']} process(es) per code, alternated, each timing "
              f"{meta['iters_per_process']} iterations (medians; the table gives the median "

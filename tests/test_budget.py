@@ -90,12 +90,22 @@ def test_replans_of_reads_a_plan_written_before_the_window_replans():
     assert replans_of(None) == []
 
 
-def test_measured_pace_leaves_out_spikes_but_not_the_tv_rhythm():
-    steps = [0.1, 0.15] * 20 + [2.0, 0.1, 0.15, 5.0]       # TV every other step; two spikes
+def test_measured_pace_leaves_out_the_priced_steps_and_keeps_every_other():
+    # TV every other step; an evaluation and a densification step, priced apart
+    steps = [0.1, 0.15] * 20 + [2.0, 0.1, 0.15, 5.0]
     clock = np.concatenate([[0.0], np.cumsum(steps)]).tolist()
-    assert measured_pace(clock) == pytest.approx(0.125, rel=1e-9)
+    apart = [False] * 40 + [True, False, False, True]
+    assert measured_pace(clock, apart) == pytest.approx(0.125, rel=1e-9)
+    # A TV step at 4x a plain one (a GPU whose plain step is a few ms): every TV step
+    # belongs to the pace (a filter by size, steps over 3x the median left out, gave 0.025)
+    gpu = [0.025, 0.1] * 20 + [0.025, 0.025]
+    clock = np.concatenate([[0.0], np.cumsum(gpu)]).tolist()
+    assert measured_pace(clock, [False] * len(gpu)) == pytest.approx(np.mean(gpu), rel=1e-9)
+    assert measured_pace(clock) == pytest.approx(np.mean(gpu), rel=1e-9)
     with pytest.raises(ValueError):
         measured_pace([1.0])
+    with pytest.raises(ValueError, match="priced_apart"):
+        measured_pace([0.0, 1.0, 2.0], [False])
 
 
 def test_adam_rehorizon_continues_the_decay_without_a_jump():

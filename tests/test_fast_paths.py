@@ -121,3 +121,54 @@ def test_voxelizer_float_column_split_equals_integer_split(variant, rng, monkeyp
         for a, b in zip(grads, grads_i):
             assert np.abs(b).max() > 0
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(b).max())
+
+
+
+def test_a_new_view_or_block_reuses_the_kernels(variant, rng):
+    """A training iteration's projection of another view and TV block at another corner
+    trace the same kernels: no size that changes with the view or block may enter a kernel
+    as a literal. segment_lanes' marker scatter had its lane count in the kernel (a
+    comparison, and the LLVM backend's per-thread ReduceMode.Expand copies): every
+    projection and block compiled a new kernel (6-8 ms on LLVM, ~20 ms on CUDA) and wrote it
+    to the on-disk kernel cache. Checked by kernel hashes, whatever the cache holds."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector import project_dr
+    from mi_grg.core.voxelizer import voxelize_dr
+    geo = mi_grg.Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(20, 28), sDetector=(3.0, 4.0),
+                          nVoxel=(16, 16, 16), sVoxel=(2.0, 2.0, 2.0), angles=circular_angles(8))
+    n = 300
+    q = rng.normal(size=(n, 4))
+    g = Gaussians.from_numpy(rng.uniform(-0.7, 0.7, (n, 3)), rng.uniform(0.05, 0.2, (n, 3)),
+                             q / np.linalg.norm(q, axis=1, keepdims=True),
+                             rng.uniform(0.1, 1.0, n))
+
+    def iteration(view, start):
+        raw = g.to_raw()
+        for v in raw.values():
+            dr.enable_grad(v)
+        gg = Gaussians.from_raw(raw)
+        means2d = dr.zeros(mi.Vector2f, n)
+        dr.enable_grad(means2d)
+        img = project_dr(gg, geo, angles=geo.angles[view:view + 1], means2d=means2d)
+        vol = voxelize_dr(gg, geo, block=(start, [6, 6, 6]))
+        dr.backward(dr.sum(dr.square(img.array)) + dr.sum(dr.square(vol.array)))
+        dr.eval(dr.grad(raw["positions"]), dr.grad(raw["raw_densities"]), dr.grad(means2d))
+        dr.sync_thread()
+        return float(dr.sum(img.array)[0]), float(dr.sum(vol.array)[0])
+
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        traced, sums = [], []
+        for view, start in ((0, [1, 2, 3]), (3, [7, 5, 2]), (5, [4, 9, 8]), (6, [9, 0, 6])):
+            dr.kernel_history()
+            sums.append(iteration(view, start))
+            traced.append({k["hash"] for k in dr.kernel_history() if "hash" in k})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    assert len(set(sums)) == len(sums), sums       # the views and blocks really differ
+    for k in (2, 3):
+        new = traced[k] - set().union(*traced[:k])
+        assert not new, f"iteration {k} traced {len(new)} kernel(s) not seen before"

@@ -770,7 +770,11 @@ def segment_lanes(counts, skip: int, total: int):
     pos = first - skip_u                 # wraps for segment 0: masked by k > 0
     k = dr.arange(UInt32, dr.width(counts))
     marker = dr.zeros(UInt32, total)
-    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & (pos < total))
+    # total changes with every view and block: as a literal (in the comparison, or the
+    # per-thread copies of the LLVM backend's default ReduceMode.Expand) it made a new
+    # kernel, compiled at 6-8 ms, on every projection and TV block
+    in_range = pos < dr.opaque(UInt32, total)
+    dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & in_range, mode=dr.ReduceMode.Local)
     slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)
     offset = dr.arange(UInt32, total) + skip_u - dr.gather(UInt32, first, slot)
     return slot, offset

@@ -149,15 +149,22 @@ def make_plan(budget: float, setup_seconds: float, costs: ProbeCosts, price) -> 
                       for k, v in asdict(costs).items()}}
 
 
-def measured_pace(seconds: list) -> float:
+def measured_pace(seconds: list, priced_apart=None) -> float:
     """Seconds per iteration from the loop's cumulative clock at consecutive iterations:
-    the mean step, leaving out the spikes (an evaluation, a densification and graph
-    rebuild: steps over 3x the median); the TV term's every-other-iteration cost stays in."""
+    the mean step, leaving out the steps marked in ``priced_apart`` (one flag per step:
+    it carried an evaluation, a 3-D log or a densification and graph rebuild, which the
+    plan prices on their own). Every other step counts, however long: the TV term's
+    every-other-iteration cost and, on a GPU, kernels that finish in a later step's host
+    sync belong to the pace. (A filter by size such as "over 3x the median" cannot tell
+    those from spikes: where a TV step costs over 3x a plain one, as on a GPU whose plain
+    step is a few ms, it priced the loop at its plain steps alone.)"""
     steps = [b - a for a, b in zip(seconds, seconds[1:])]
     if not steps:
         raise ValueError("need the clock at two iterations at least")
-    median = sorted(steps)[len(steps) // 2]
-    kept = [d for d in steps if d <= 3.0 * median] or steps
+    skip = list(priced_apart) if priced_apart is not None else [False] * len(steps)
+    if len(skip) != len(steps):
+        raise ValueError(f"priced_apart has {len(skip)} flags for {len(steps)} steps")
+    kept = [d for d, s in zip(steps, skip) if not s] or steps
     return sum(kept) / len(kept)
 
 

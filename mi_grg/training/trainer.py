@@ -242,17 +242,17 @@ class Trainer:
         final = it >= sched["densify_stop"]
         counts = [r["n_gaussians"] for r in rows]
         clock = [r["seconds"] for r in rows] + [seconds]
-        step = measured_pace(clock)
+        # Step k runs iteration rows[k] + 1 on rows[k]'s count, after rows[k]'s evaluation
+        # and 3-D log (if any); both and densification are priced apart.
+        evaluated = ["heldout_psnr" in r or "psnr_3d" in r for r in rows]
+        densifying = [self.densifier.is_densify_iteration(r["iteration"] + 1) for r in rows]
+        step = measured_pace(clock, [e or d for e, d in zip(evaluated, densifying)])
         growth = 0.0 if final else max(0.0, (n - counts[0]) / max(1, it - rows[0]["iteration"]))
         probe = plan["probe"]
         # A densification iteration's extra time, measured (the probe times only the graph
-        # rebuild): its step beyond the pace, per Gaussian. Step k runs iteration
-        # rows[k] + 1 on rows[k]'s count, after rows[k]'s evaluation (if any: left out).
-        extra = []
-        for k, prev in enumerate(rows):
-            if (self.densifier.is_densify_iteration(prev["iteration"] + 1)
-                    and "heldout_psnr" not in prev and "psnr_3d" not in prev):
-                extra.append((clock[k + 1] - clock[k] - step) / prev["n_gaussians"])
+        # rebuild): its step beyond the pace, per Gaussian.
+        extra = [(clock[k + 1] - clock[k] - step) / prev["n_gaussians"]
+                 for k, prev in enumerate(rows) if densifying[k] and not evaluated[k]]
         rebuild = max(probe["rebuild"] / probe["n"], sum(extra) / len(extra) if extra else 0.0)
         pace = LoopPace(at=it, per_gaussian=step / (sum(counts) / len(counts)), n=n,
                         growth=growth, cap=probe["cap"], rebuild=rebuild,
