@@ -331,14 +331,17 @@ class PGADensifier:
         # Rows before pruning: [originals | clone copies | first children | second children]
         m = n + nc + 2 * ns
         row = dr.arange(mi.UInt32, m)
-        is_orig = row < n
-        is_clone = (row >= n) & (row < n + nc)
-        is_child = row >= n + nc
+        # The counts as opaque variables: as literals they made new kernels (compiled at
+        # each densification, 0.1-0.2 s on the CPU) since they change every time
+        n_o, nnc_o = dr.opaque(mi.UInt32, n), dr.opaque(mi.UInt32, n + nc)
+        is_orig = row < n_o
+        is_clone = (row >= n_o) & (row < nnc_o)
+        is_child = row >= nnc_o
         src = dr.select(is_orig, row, 0)
         if nc:
-            src = dr.select(is_clone, dr.gather(mi.UInt32, ci, row - n, is_clone), src)
+            src = dr.select(is_clone, dr.gather(mi.UInt32, ci, row - n_o, is_clone), src)
         if ns:
-            k = (row - (n + nc)) % ns
+            k = (row - nnc_o) % dr.opaque(mi.UInt32, ns)
             src = dr.select(is_child, dr.gather(mi.UInt32, si, k, is_child), src)
 
         rho = dr.gather(mi.Float, phys.densities, src)

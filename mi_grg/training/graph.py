@@ -54,7 +54,7 @@ def mutual_edges(idx, k: int):
     n = total // k
     if n == 0:
         return dr.zeros(mi.UInt32, 0), dr.zeros(mi.UInt32, 0)
-    if not bool(dr.all(idx < n)[0]):
+    if not bool(dr.all(idx < dr.opaque(mi.UInt32, n))[0]):   # opaque: N changes per rebuild
         raise GraphError(f"idx entries must be < N = {n}")
     e = dr.arange(mi.UInt32, total)
     i = e // k
@@ -85,7 +85,7 @@ def edge_weights(points, src, dst, s: float):
     if _width(src) == 0:
         return dr.zeros(mi.Float, 0)
     d = dr.gather(mi.Point3f, p, src) - dr.gather(mi.Point3f, p, dst)
-    x = dr.squared_norm(d) / s
+    x = dr.squared_norm(d) / dr.opaque(mi.Float, s)   # s changes per rebuild: not a literal
     return dr.select(x < _EXP_CUTOFF, dr.exp(-x), 0.0)
 
 
@@ -162,8 +162,10 @@ def _to_both_ends(graph: Graph, value_at_src, value_at_dst):
     value_at_dst (differentiable)."""
     out = dr.zeros(mi.Float, graph.n)
     if graph.num_edges:
-        dr.scatter_add(out, value_at_src, graph.src)
-        dr.scatter_add(out, value_at_dst, graph.dst)
+        # Local, not the LLVM default Expand, whose per-thread copies put N in the kernel
+        # (a new kernel at every rebuild, since N changes with densification)
+        dr.scatter_add(out, value_at_src, graph.src, mode=dr.ReduceMode.Local)
+        dr.scatter_add(out, value_at_dst, graph.dst, mode=dr.ReduceMode.Local)
     return out
 
 
@@ -181,8 +183,8 @@ def degree(graph: Graph):
     """Number of mutual neighbours |N(i)| <= k of every node: mi.UInt32 [N]."""
     out = dr.zeros(mi.UInt32, graph.n)
     if graph.num_edges:
-        dr.scatter_reduce(dr.ReduceOp.Add, out, mi.UInt32(1), graph.src)
-        dr.scatter_reduce(dr.ReduceOp.Add, out, mi.UInt32(1), graph.dst)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, mi.UInt32(1), graph.src, mode=dr.ReduceMode.Local)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, mi.UInt32(1), graph.dst, mode=dr.ReduceMode.Local)
     return out
 
 
@@ -213,7 +215,11 @@ def laplacian_loss(graph: Graph, densities, normalise: bool = True):
         # 0 would be simplified away together with the AD edge)
         return dr.sum(rho * dr.opaque(mi.Float, 0.0))
     w = graph.weights
-    diff = dr.gather(mi.Float, rho, graph.src) - dr.gather(mi.Float, rho, graph.dst)
+    # Local: the gathers' adjoint scatter-adds then carry no N literal (the LLVM default
+    # Expand's per-thread copies made a new kernel after every densification)
+    loc = dr.ReduceMode.Local
+    diff = (dr.gather(mi.Float, rho, graph.src, mode=loc)
+            - dr.gather(mi.Float, rho, graph.dst, mode=loc))
     raw = 2 * dr.sum(w * diff * diff)
     if not normalise:
         return raw

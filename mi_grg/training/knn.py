@@ -116,8 +116,9 @@ class _Frame:
 def _morton(p, frame):
     """30-bit Morton code of each point on a 1024^3 grid over the bounding cube."""
     code = dr.zeros(mi.UInt32, dr.width(p))
+    scale = dr.opaque(mi.Float, 1024 / frame.H)   # opaque: the frame changes per rebuild
     for a, x in enumerate((p.x, p.y, p.z)):
-        v = mi.UInt32(dr.clip((x - frame.lo[a]) * (1024 / frame.H), 0, 1023))
+        v = mi.UInt32(dr.clip((x - dr.opaque(mi.Float, frame.lo[a])) * scale, 0, 1023))
         v = (v | (v << 16)) & 0x030000FF   # spread 10 bits to every third bit
         v = (v | (v << 8)) & 0x0300F00F
         v = (v | (v << 4)) & 0x030C30C3
@@ -175,7 +176,7 @@ def _cell_counts(p, lv):
     """Number of points in each point's own cell at this level (hash collisions add a few)."""
     _, _, b = _bucket_of_points(p, lv)
     counts = dr.zeros(mi.UInt32, lv["size"])
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), b)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), b, mode=dr.ReduceMode.Local)
     return dr.gather(mi.UInt32, counts, b)
 
 

@@ -248,7 +248,8 @@ class Adam:
         keep_moments = mi.Bool(keep_moments)
         if dr.width(keep_moments) != dr.width(src):
             raise AdamError("keep_moments must have the width of src")
-        if dr.width(src) and bool(dr.any(keep_moments & (src >= n), axis=None)):
+        # n opaque: a literal would make a new kernel at every densification
+        if dr.width(src) and bool(dr.any(keep_moments & (src >= dr.opaque(mi.UInt32, n)), axis=None)):
             raise AdamError(f"remap index out of range (state has {n} rows)")
         for st in self.state.values():
             st.m = dr.gather(type(st.m), st.m, src, keep_moments)

@@ -472,7 +472,8 @@ class Trainer:
             loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
         if cfg.lambda_lap > 0 and self.graph is not None:
             lap = laplacian_loss(self.graph, g.densities, normalise=False)
-            loss = loss + cfg.lambda_lap * (REFERENCE_N / max(n, 1)) * lap
+            # opaque: the weight changes with N, a literal would make new kernels
+            loss = loss + dr.opaque(mi.Float, cfg.lambda_lap * (REFERENCE_N / max(n, 1))) * lap
         dr.backward(loss)
         # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
         # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
