@@ -357,49 +357,83 @@ def test_rebuild_keeps_graph_field_through_clones(variant, rng):
 
 
 
+
+def _traced(fn):
+    """Run fn() with Dr.Jit's kernel history on: (its result, the hashes it launched)."""
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        out = fn()
+        dr.sync_thread()
+        return out, {k["hash"] for k in dr.kernel_history() if "hash" in k}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+
+
 def test_densification_at_a_new_count_reuses_the_kernels(variant, rng):
-    """Densify-and-prune, the Adam surgery, the graph rebuild (kNN, mutual edges, weights,
-    PGA term, density scale) and the Laplacian's forward and backward, run as training
-    runs them (each round on the last round's output, N growing), trace the kernels of
-    the earlier rounds: no count, weight scale or frame enters a kernel as a literal (they
-    did: 150 kernels compiled over the first 11 densifications of a 64^3 run, 1.1 s on the
-    CPU). Checked by kernel hashes, whatever the cache holds. (N stays below 1024, within
-    one kNN hash-table size: a larger table is a new level structure, new kernels.)"""
+    """Densify-and-prune, the Adam surgery and the graph built on the kNN (mutual edges,
+    weights, PGA term, density scale, the Laplacian's forward and backward), run as
+    training runs them (each round on the last round's output, N growing), trace the
+    kernels of the earlier rounds: no count or weight scale enters a kernel as a literal
+    (they did: 150 kernels compiled over the first 11 densifications of a 64^3 run, 1.1 s
+    on the CPU). Checked by kernel hashes, whatever the cache holds. The kNN itself runs
+    outside the check: which of its grid levels run depends on the points (its frame is
+    checked by the next test)."""
     from mi_grg.training import graph
     n = 600
     raw = make_raw(rng.uniform(-0.6, 0.6, (n, 3)), rng.uniform(0.01, 0.3, (n, 3)),
                    rng.uniform(0.05, 1.0, n), rand_quats(rng, n))
     opt = Adam()
-    d = PGADensifier(DensifyConfig(use_graph=True, tau_pos=0.9, max_count=1000), seed=1)
+    d = PGADensifier(DensifyConfig(use_graph=True, tau_pos=0.9, max_count=10 ** 6), seed=1)
 
-    def round_(raw):
+    def round_(raw, idx, d2):
         for v in raw.values():
             dr.enable_grad(v)
         n = dr.width(raw["raw_densities"])
-        g = graph.build_graph(raw["positions"], k=6)
+        src, dst = graph.mutual_edges(idx, 6)
+        s = graph.default_scale(d2, 6)
+        g = graph.Graph(src=src, dst=dst, weights=graph.edge_weights(raw["positions"], src, dst, s),
+                        k=6, s=s, n=n)
         lap = graph.laplacian_loss(g, Gaussians.from_raw(raw).densities, normalise=False)
         dr.backward(dr.opaque(mi.Float, 1e-3) * lap)
         raw = opt.step(raw)
         term = graph.mean_abs_density_difference(g, Gaussians.from_raw(raw).densities)
-        feed(d, rng.uniform(0, 1, n))
+        # gradients made on the device: a NumPy-mapped input's alignment (1 or 64 bytes,
+        # as NumPy allocated it) would choose between two kernel variants by chance
+        x = dr.arange(mi.Float, n) * dr.opaque(mi.Float, 0.618034) + dr.opaque(mi.Float, 0.1 * n)
+        d.reset(n)
+        d.accumulate(x - dr.floor(x))                     # spread over [0, 1)
         out, info = d.densify_and_prune(raw, opt, graph_term=term, bbox=BBOX)
         assert info["n_clone"] + info["n_split"] > 0
-        dr.eval(graph.graph_density_scale(graph.build_graph(out["positions"], k=6)))
-        dr.sync_thread()
+        dr.eval(graph.graph_density_scale(g), out)
         return out, info["n_after"]
 
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        traced, counts = [], []
-        for _ in range(4):
-            dr.kernel_history()
-            raw, n_after = round_(raw)
-            counts.append(n_after)
-            traced.append({k["hash"] for k in dr.kernel_history() if "hash" in k})
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
-    assert len(set(counts)) == len(counts) and max(counts) < 1024, counts
+    traced, counts = [], []
+    for _ in range(4):
+        idx, d2 = graph.knn(raw["positions"], 6)
+        dr.eval(idx, d2)
+        (raw, n_after), hashes = _traced(lambda: round_(raw, idx, d2))
+        counts.append(n_after)
+        traced.append(hashes)
+    assert len(set(counts)) == len(counts), counts
     for k in (2, 3):
         new = traced[k] - set().union(*traced[:k])
         assert not new, f"round {k} (N = {counts[k]}) traced {len(new)} kernel(s) not seen before"
+
+
+def test_knn_in_another_frame_reuses_the_kernels(variant, rng):
+    """The kNN of the same points moved and scaled (another bounding cube, as after a
+    densification) traces the same kernels: the frame is not a literal (it was, in the
+    Morton codes)."""
+    from mi_grg.training.knn import knn
+    p = rng.uniform(-0.6, 0.6, (500, 3))
+    runs = []
+    for scale, shift in ((1.0, 0.0), (1.25, 0.1), (0.8, -0.2)):
+        q = mi.Point3f(*[mi.Float(np.ascontiguousarray(scale * p[:, a] + shift)) for a in range(3)])
+        q = q + dr.opaque(mi.Float, 0.0)     # device memory, not a NumPy-mapped input
+        dr.eval(q)
+        (idx, _), hashes = _traced(lambda: knn(q, 6))
+        runs.append((np.asarray(idx), hashes))
+    assert all(np.array_equal(r[0], runs[0][0]) for r in runs)   # the same neighbours
+    assert runs[2][1] <= runs[0][1] | runs[1][1], runs[2][1] - runs[0][1] - runs[1][1]
