@@ -261,11 +261,8 @@ WORKERS = {"grid": worker_grid, "phases": worker_phases, "extent": worker_extent
 
 
 # ====================================================================== driver side
-VARIANT = ["llvm_ad_mono"]   # set by --variant; every worker process runs on it
-
-
 def _spawn(kind, cfg, **env_extra):
-    env = dict(os.environ, MI_GRG_VARIANT=VARIANT[0], **env_extra)
+    env = dict(os.environ, **env_extra)      # MI_GRG_VARIANT: set by main from --variant
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, json.dumps(cfg)]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(ROOT))
     if res.returncode != 0:
@@ -377,13 +374,13 @@ def main(argv=None):
     ap.add_argument("--variant", default="llvm_ad_mono", choices=("llvm_ad_mono", "cuda_ad_mono"))
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    VARIANT[0] = a.variant
     if a.worker:
         sys.path.insert(0, str(ROOT))
         import mi_grg  # noqa: F401  (before drjit: selects the LLVM library)
         out = WORKERS[a.worker[0]](json.loads(a.worker[1]))
         print(json.dumps(out))
         return 0
+    os.environ["MI_GRG_VARIANT"] = a.variant   # the driver's: inherited by every worker
     from mi_grg.core.projector import DEFAULT_EXTENT  # noqa: F401 (also checks the import)
     runs = max(3, a.runs or 3)
     if a.quick:

@@ -171,6 +171,13 @@ class _Step:
         from mi_grg.core.voxelizer import voxelize_dr
         from mi_grg.training.graph import laplacian_loss
         from mi_grg.training.losses import projection_loss, tv_3d
+        try:
+            from mi_grg.training.trainer import laplacian_weight
+        except ImportError:   # the "before" code: the same weight, as a literal
+            from mi_grg.training.trainer import REFERENCE_N
+
+            def laplacian_weight(lam, n):
+                return lam * (REFERENCE_N / max(n, 1))
         cfg, geo = self.cfg, self.geo
         tick = tick or (lambda name, *a: None)
         nv, nu = geo.nDetector
@@ -200,7 +207,7 @@ class _Step:
             terms.append(tv)
         lap = None
         if cfg.lambda_lap > 0 and self.graph is not None:
-            lap = cfg.lambda_lap * (50000 / max(n, 1)) * laplacian_loss(self.graph, g.densities,
+            lap = laplacian_weight(cfg.lambda_lap, n) * laplacian_loss(self.graph, g.densities,
                                                                        normalise=False)
             tick("lap_fwd", lap)
             terms.append(lap)

@@ -49,3 +49,23 @@ def crash_after():
         with pytest.raises(KeyboardInterrupt):
             trainer.run()
     return run
+
+
+@pytest.fixture
+def kernel_hashes():
+    """kernel_hashes(fn) -> (fn(), set of the hashes of the kernels fn launched), with
+    Dr.Jit's kernel history on for the call (for checks that a new input size or value
+    traces no new kernel, whatever the kernel cache holds)."""
+    import drjit as dr
+
+    def run(fn):
+        flag = dr.flag(dr.JitFlag.KernelHistory)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()
+            out = fn()
+            dr.sync_thread()
+            return out, {k["hash"] for k in dr.kernel_history() if "hash" in k}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    return run

@@ -358,20 +358,7 @@ def test_rebuild_keeps_graph_field_through_clones(variant, rng):
 
 
 
-def _traced(fn):
-    """Run fn() with Dr.Jit's kernel history on: (its result, the hashes it launched)."""
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()
-        out = fn()
-        dr.sync_thread()
-        return out, {k["hash"] for k in dr.kernel_history() if "hash" in k}
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
-
-
-def test_densification_at_a_new_count_reuses_the_kernels(variant, rng):
+def test_densification_at_a_new_count_reuses_the_kernels(variant, rng, kernel_hashes):
     """Densify-and-prune, the Adam surgery and the graph built on the kNN (mutual edges,
     weights, PGA term, density scale, the Laplacian's forward and backward), run as
     training runs them (each round on the last round's output, N growing), trace the
@@ -413,7 +400,7 @@ def test_densification_at_a_new_count_reuses_the_kernels(variant, rng):
     for _ in range(4):
         idx, d2 = graph.knn(raw["positions"], 6)
         dr.eval(idx, d2)
-        (raw, n_after), hashes = _traced(lambda: round_(raw, idx, d2))
+        (raw, n_after), hashes = kernel_hashes(lambda: round_(raw, idx, d2))
         counts.append(n_after)
         traced.append(hashes)
     assert len(set(counts)) == len(counts), counts
@@ -422,7 +409,7 @@ def test_densification_at_a_new_count_reuses_the_kernels(variant, rng):
         assert not new, f"round {k} (N = {counts[k]}) traced {len(new)} kernel(s) not seen before"
 
 
-def test_knn_in_another_frame_reuses_the_kernels(variant, rng):
+def test_knn_in_another_frame_reuses_the_kernels(variant, rng, kernel_hashes):
     """The kNN of the same points moved and scaled (another bounding cube, as after a
     densification) traces the same kernels: the frame is not a literal (it was, in the
     Morton codes)."""
@@ -433,7 +420,7 @@ def test_knn_in_another_frame_reuses_the_kernels(variant, rng):
         q = mi.Point3f(*[mi.Float(np.ascontiguousarray(scale * p[:, a] + shift)) for a in range(3)])
         q = q + dr.opaque(mi.Float, 0.0)     # device memory, not a NumPy-mapped input
         dr.eval(q)
-        (idx, _), hashes = _traced(lambda: knn(q, 6))
+        (idx, _), hashes = kernel_hashes(lambda: knn(q, 6))
         runs.append((np.asarray(idx), hashes))
     assert all(np.array_equal(r[0], runs[0][0]) for r in runs)   # the same neighbours
     assert runs[2][1] <= runs[0][1] | runs[1][1], runs[2][1] - runs[0][1] - runs[1][1]

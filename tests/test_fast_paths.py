@@ -124,7 +124,7 @@ def test_voxelizer_float_column_split_equals_integer_split(variant, rng, monkeyp
 
 
 
-def test_a_new_view_or_block_reuses_the_kernels(variant, rng):
+def test_a_new_view_or_block_reuses_the_kernels(variant, rng, kernel_hashes):
     """A training iteration's projection of another view and TV block at another corner
     trace the same kernels: no size that changes with the view or block may enter a kernel
     as a literal. segment_lanes' marker scatter had its lane count in the kernel (a
@@ -158,16 +158,11 @@ def test_a_new_view_or_block_reuses_the_kernels(variant, rng):
         dr.sync_thread()
         return float(dr.sum(img.array)[0]), float(dr.sum(vol.array)[0])
 
-    flag = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        traced, sums = [], []
-        for view, start in ((0, [1, 2, 3]), (3, [7, 5, 2]), (5, [4, 9, 8]), (6, [9, 0, 6])):
-            dr.kernel_history()
-            sums.append(iteration(view, start))
-            traced.append({k["hash"] for k in dr.kernel_history() if "hash" in k})
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    traced, sums = [], []
+    for view, start in ((0, [1, 2, 3]), (3, [7, 5, 2]), (5, [4, 9, 8]), (6, [9, 0, 6])):
+        total, hashes = kernel_hashes(lambda: iteration(view, start))
+        sums.append(total)
+        traced.append(hashes)
     assert len(set(sums)) == len(sums), sums       # the views and blocks really differ
     for k in (2, 3):
         new = traced[k] - set().union(*traced[:k])

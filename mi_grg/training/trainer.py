@@ -46,6 +46,12 @@ from mi_grg.training.views import ViewProtocol, stop_from
 REFERENCE_N = 50000
 
 
+def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
+    """The Laplacian term's weight at N Gaussians, lambda_lap x REFERENCE_N / N, as an
+    opaque scalar: as a literal it changed with every densification and made new kernels."""
+    return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
+
+
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
@@ -315,12 +321,15 @@ class Trainer:
             if len(self.held_idx):
                 evaluation = _second_of_two(lambda: self._heldout_psnr(raw))
             if self.case.vol_gt is not None:
-                from mi_grg.evaluation.metrics import psnr_3d
-                log_3d = _second_of_two(lambda: psnr_3d(self.volume(raw, self._density_scale),
-                                                        self.case.vol_gt))
+                log_3d = _second_of_two(lambda: self._psnr_3d(raw))
         finally:
             self.rng, self.graph, self._density_scale = rng, None, None
         return {"step": step, "evaluation": evaluation, "rebuild": rebuild, "log_3d": log_3d}
+
+    def _psnr_3d(self, raw: dict) -> float:
+        """The research log's 3-D PSNR of the current state against the ground truth."""
+        from mi_grg.evaluation.metrics import psnr_3d
+        return float(psnr_3d(self.volume(raw, self._density_scale), self.case.vol_gt))
 
     def _logs_3d(self, iterations: int, after: int, eval_every: int) -> int:
         """How many 3-D PSNR logs (``_evaluate``) iterations after+1 .. ``iterations``
@@ -472,8 +481,7 @@ class Trainer:
             loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
         if cfg.lambda_lap > 0 and self.graph is not None:
             lap = laplacian_loss(self.graph, g.densities, normalise=False)
-            # opaque: the weight changes with N, a literal would make new kernels
-            loss = loss + dr.opaque(mi.Float, cfg.lambda_lap * (REFERENCE_N / max(n, 1))) * lap
+            loss = loss + laplacian_weight(cfg.lambda_lap, n) * lap
         dr.backward(loss)
         # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
         # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
@@ -519,9 +527,7 @@ class Trainer:
             # Research logging: not counted in the training time, except against a time
             # budget, which is wall clock (mi_grg.training.budget prices it)
             t3 = time.perf_counter()
-            from mi_grg.evaluation.metrics import psnr_3d
-            row["psnr_3d"] = float(psnr_3d(self.volume(raw, self._density_scale),
-                                           self.case.vol_gt))
+            row["psnr_3d"] = self._psnr_3d(raw)
             if cfg.time_budget is None:
                 self._t_start += time.perf_counter() - t3
         # A held-out view is judged only while none of them has been trained on.
