@@ -404,9 +404,10 @@ def test_densification_at_a_new_count_reuses_the_kernels(variant, rng, kernel_ha
         counts.append(n_after)
         traced.append(hashes)
     assert len(set(counts)) == len(counts), counts
-    for k in (2, 3):
-        new = traced[k] - set().union(*traced[:k])
-        assert not new, f"round {k} (N = {counts[k]}) traced {len(new)} kernel(s) not seen before"
+    # at most one new fusion of equal-width work by coincidence (see test_fast_paths); the
+    # old literals made a dozen new kernels every round
+    new = [len(traced[k] - set().union(*traced[:k])) for k in range(2, len(traced))]
+    assert sum(new) <= 1, f"rounds 2.. (N = {counts[2:]}) traced {new} kernel(s) not seen before"
 
 
 def test_knn_in_another_frame_reuses_the_kernels(variant, rng, kernel_hashes):

@@ -159,11 +159,14 @@ def test_a_new_view_or_block_reuses_the_kernels(variant, rng, kernel_hashes):
         return float(dr.sum(img.array)[0]), float(dr.sum(vol.array)[0])
 
     traced, sums = [], []
-    for view, start in ((0, [1, 2, 3]), (3, [7, 5, 2]), (5, [4, 9, 8]), (6, [9, 0, 6])):
+    for view, start in ((0, [1, 2, 3]), (3, [7, 5, 2]), (5, [4, 9, 8]), (6, [9, 0, 6]),
+                        (2, [3, 3, 0]), (7, [8, 6, 9])):
         total, hashes = kernel_hashes(lambda: iteration(view, start))
         sums.append(total)
         traced.append(hashes)
     assert len(set(sums)) == len(sums), sums       # the views and blocks really differ
-    for k in (2, 3):
-        new = traced[k] - set().union(*traced[:k])
-        assert not new, f"iteration {k} traced {len(new)} kernel(s) not seen before"
+    # Dr.Jit fuses work of equal width into one kernel, so two arrays that happen to share
+    # a width make a new fusion now and then (seen: 1 kernel in about 1 run of 5); a size
+    # literal makes new kernels on every iteration (3 each with the old segment_lanes).
+    new = [len(traced[k] - set().union(*traced[:k])) for k in range(2, len(traced))]
+    assert sum(new) <= 1, f"iterations 2.. traced {new} kernel(s) not seen before"
