@@ -2,8 +2,8 @@
 
 For suite-like cases (64^3, 96^2 detector, 25 noisy views, the cases of
 experiments/suite_cpu.json), runs SART, ASD-POCS and PDHG with their default protocol
-(sweep count and regularisation chosen on held-out training views by gr's rule, then the
-chosen setting run on all views; mi_grg.classical.heldout) and, for reference, the
+(sweep count and regularisation chosen on held-out training views, then the chosen
+setting run on all views; mi_grg.classical.heldout) and, for reference, the
 paper's fixed 10 sweeps. Records per run the 3-D PSNR of the result, the oracle (the best
 3-D PSNR over the chosen setting's sweeps on all views, chosen with the ground truth; it
 decides nothing) and the time of the result (the oracle's extra sweeps and scoring
@@ -119,13 +119,18 @@ def markdown(result: dict) -> str:
              f"{result['machine']['cores']} cores (shared: the 1-minute load average at "
              f"each run's start is in the JSON), code {result['machine']['mi_grg']}; "
              f"{result['reps']} repetition(s), median time.", "",
-             "Held-out rows (the default): sweeps and regularisation chosen on the held-out "
-             "training views (every 8th) by gr's early-stopping rule, then the chosen "
-             "setting run on all 25 views. **Oracle** = the best 3-D PSNR over the chosen "
-             "setting's sweeps on all views, picked with the ground truth (reported only; "
-             "it decides nothing); gap = oracle − result. Time = the result's wall-clock "
-             "seconds (the held-out decision included; the oracle's extra sweeps and "
-             "scoring excluded). Fixed rows: the paper's 10 sweeps at TIGRE's defaults.", "",
+             "Held-out rows (the default): sweeps and regularisation chosen without the "
+             "ground truth on the training views, every 8th held out, then the chosen "
+             "setting run on all 25 views. PDHG: gr's early-stopping rule on the held-out "
+             "PSNR. SART / ASD-POCS: the discrepancy principle, the first sweep whose fitted-"
+             "view residual reaches the noise level measured on the held-out views (the "
+             "lowest held-out mean squared residual), and ASD-POCS's TV weight by held-out "
+             "PSNR at that sweep (mi_grg.classical.heldout). **Oracle** = the best 3-D PSNR "
+             "over the chosen setting's sweeps on all views, picked with the ground truth "
+             "(reported only; it decides nothing); gap = oracle − result. Time = the "
+             "result's wall-clock seconds (the held-out decision included; the oracle's "
+             "extra sweeps and scoring excluded). Fixed rows: the paper's 10 sweeps at "
+             "TIGRE's defaults.", "",
              "| case | run | 3-D PSNR | SSIM | oracle (sweep) | gap (dB) | chosen | "
              "time (s) |", "|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
@@ -149,15 +154,18 @@ def markdown(result: dict) -> str:
     cands = [(r["run"], c) for r in result["rows"] for c in r.get("candidates") or []]
     at_cap = sum(c["sweeps_run"] >= (HELDOUT_ITERATION_CAP if run == "pdhg"
                                      else HELDOUT_SWEEP_CAP) for run, c in cands)
-    lines += ["", f"The rule stopped {len(cands) - at_cap} of the {len(cands)} candidate runs "
-              f"before the sweep cap ({HELDOUT_SWEEP_CAP} sweeps for SART / ASD-POCS, "
-              f"{HELDOUT_ITERATION_CAP} iterations for PDHG); the others ran to the cap with "
-              "the held-out PSNR still rising or within 0.5 % of its best. Held-out views "
-              "measure how well projections are predicted; the 3-D error of SART and "
-              "ASD-POCS grows after a few sweeps through voxel noise that largely cancels "
-              "along rays, so on these noisy cases the held-out signal cannot see their "
-              "semi-convergence and prefers the weakest TV weight; PDHG's TV minimiser does "
-              "not semi-converge, and there the rule lands near its oracle."]
+    lines += ["", f"The held-out PSNR rule stopped {len(cands) - at_cap} of the "
+              f"{len(cands)} candidate runs before the sweep cap ({HELDOUT_SWEEP_CAP} sweeps "
+              f"for SART / ASD-POCS, {HELDOUT_ITERATION_CAP} iterations for PDHG); the others "
+              "ran to the cap with the held-out PSNR still rising or within 0.5 % of its "
+              "best. Held-out views measure how well projections are predicted; the 3-D "
+              "error of SART and ASD-POCS grows after a few sweeps through noise amplified "
+              "along directions that project weakly, which no held-out projection predicts, "
+              "so on these noisy cases that rule alone cannot see their semi-convergence "
+              "(it landed SART 4.51 dB and ASD-POCS 2.72 dB from their oracles on average, "
+              "code 5c8f7f1). The discrepancy principle sees it: fitting the training views "
+              "below the noise level fits noise. PDHG's TV minimiser does not semi-converge, "
+              "and there the held-out PSNR rule lands near its oracle."]
     return "\n".join(lines) + "\n"
 
 

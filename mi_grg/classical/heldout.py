@@ -1,5 +1,5 @@
 """Held-out-view stopping and tuning for the iterative classical methods (SART, OS-SART,
-ASD-POCS, PDHG): the same rule gr and r2 use, then the chosen setting on every view.
+ASD-POCS, PDHG): decisions on held-out training views, then the chosen setting on every view.
 
 Protocol (``run_heldout``), never looking at the ground truth:
 
@@ -9,18 +9,28 @@ Protocol (``run_heldout``), never looking at the ground truth:
    lambda), run the method on the fitted views only; after every sweep (every
    ``eval_every`` iterations) project the volume onto the held-out views and feed their
    PSNR to an ``EarlyStopper`` with TrainConfig's drop / patience / keep (the rule object
-   gr and r2 use). It stops the run; its ``kept_iteration`` is that setting's sweep count.
-3. Choose the setting whose kept state has the highest held-out PSNR.
-4. Run the chosen setting for the chosen sweep count on ALL training views (the held-out
+   gr and r2 use). It ends the run; its ``kept_iteration`` is that setting's sweep count.
+3. With ``discrepancy`` (SART and ASD-POCS), the sweep count comes instead from the
+   discrepancy principle (Morozov): the first sweep whose mean squared residual on the
+   fitted views is at most the noise level, and the noise level is estimated on the
+   held-out views as the lowest mean squared held-out residual any decision run reached
+   (their noise is independent of the fit, so no state predicts them better on average;
+   the estimate errs high, which stops early rather than late). A candidate whose residual
+   never reaches it keeps the EarlyStopper's sweep.
+4. Choose the setting whose kept state has the highest held-out PSNR.
+5. Run the chosen setting for the chosen sweep count on ALL training views (the held-out
    ones included) and return that volume: the decision used held-out views, the result
    uses every view (issue 26). A sweep over 25 views and one over 21 do about the same
    per view, so the count transfers.
 
-What the rule sees: the held-out views measure the error of predicting projections, not
-the 3-D error. On noisy sparse views, SART's and ASD-POCS's 3-D error grows after a few
-sweeps mostly through voxel noise that cancels along rays, so the held-out PSNR can keep
-rising long after the 3-D PSNR peaked and prefers weak regularisation; the sweep cap then
-decides (docs/bench/fair_baselines.md measures how far that lands from the oracle).
+Why step 3: the held-out views measure the error of predicting projections, not the 3-D
+error. On noisy sparse views SART's and ASD-POCS's 3-D error grows after a few sweeps
+through noise amplified along the weakly projecting (small singular value) directions,
+which no projection predicts, so the held-out PSNR keeps rising long after the 3-D PSNR
+peaked (it also does when detector pixels instead of views are held out, or when the
+held-out residual is ramp-filtered; docs/bench/fair_baselines.md). The fit residual
+crossing the noise level marks the peak: fitting beyond it fits noise. PDHG converges to
+its TV minimiser instead of semi-converging, and there step 2's rule lands near its best.
 
 Oracle (only when the case has a ground truth, ``oracle`` on): the final run continues
 past the chosen sweep and scores the 3-D PSNR of every sweep, to show how close the rule
@@ -56,12 +66,9 @@ def check_stop(stop: str) -> str:
     return stop
 
 
-def heldout_psnr(vol: np.ndarray, geometry, angles, target: np.ndarray) -> float:
-    """Mean per-view PSNR of the Joseph projections of ``vol`` [x, y, z] at ``angles``
-    against ``target`` [view, v, u] (the held-out measurements; metrics.psnr_proj)."""
-    from mi_grg.classical.joseph import forward_project
-    from mi_grg.evaluation.metrics import psnr_proj
-    return float(psnr_proj(forward_project(vol, geometry, angles), target))
+def _mse(pred: np.ndarray, target: np.ndarray) -> float:
+    """Mean squared residual of projections [view, v, u] (line-integral units squared)."""
+    return float(np.mean(np.square(pred.astype(np.float64) - target)))
 
 
 def _split(case, holdout_every: int, name: str):
@@ -77,7 +84,8 @@ def _split(case, holdout_every: int, name: str):
 
 
 def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every: int = 1,
-                holdout_every: int | None = None, oracle=None, progress: bool = True):
+                holdout_every: int | None = None, oracle=None, discrepancy: bool = False,
+                progress: bool = True):
     """The protocol of the module docstring for one method.
 
     Args:
@@ -92,6 +100,8 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
         eval_every: iterations between held-out evaluations (1 for a SART sweep).
         holdout_every: None = TrainConfig's default (gr's and r2's).
         oracle: score 3-D PSNR of the final run's sweeps (None: when a ground truth exists).
+        discrepancy: the sweep count by the discrepancy principle with the noise level
+            estimated on the held-out views (step 3; for semi-convergent methods).
     Returns:
         (volume [x, y, z] float32, info dict for metrics.json).
     """
@@ -104,28 +114,35 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
         raise ValueError(f"eval_every must be >= 1, got {eval_every}")
     if not grid:
         raise ValueError(f"{name}: the grid of settings is empty")
+    from mi_grg.classical.joseph import forward_project
+    from mi_grg.evaluation.metrics import psnr_proj
     from mi_grg.training.early_stop import EarlyStopper
     fit, held = _split(case, rule["holdout_every"], name)
     geo = case.geometry
     angles = np.asarray(geo.angles, np.float64)
     geo_fit = geo.with_angles(angles[fit])
     target = case.train[held]
+    fit_data = case.train[fit]
     t_start = time.perf_counter()
     candidates = []
     for setting in grid:
         stopper = EarlyStopper(drop=rule["drop"], patience=rule["patience"],
                                keep=rule["keep"], label="held-out PSNR")
-        last = [0]
+        last, residuals = [0], []
 
-        def judge(it, vol, stopper=stopper, last=last):
+        def judge(it, vol, stopper=stopper, last=last, residuals=residuals):
             sweep = it + 1
             last[0] = sweep
             if sweep % eval_every:
                 return False
-            return stopper.update(sweep, heldout_psnr(vol, geo, angles[held], target)) == "stop"
+            pred = forward_project(vol, geo, angles[held])
+            if discrepancy:     # [sweep, held-out MSE, fitted-view MSE]
+                residuals.append([sweep, _mse(pred, target),
+                                  _mse(forward_project(vol, geo_fit), fit_data)])
+            return stopper.update(sweep, psnr_proj(pred, target)) == "stop"
 
         t0 = time.perf_counter()
-        run(case.train[fit], geo_fit, n_iter=int(max_sweeps), callback=judge,
+        run(fit_data, geo_fit, n_iter=int(max_sweeps), callback=judge,
             progress=progress, **setting)
         if stopper.kept_iteration < 1:
             raise ValueError(f"{name}: no held-out evaluation in {last[0]} iteration(s) "
@@ -141,6 +158,17 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
                 "method's own convergence test) without the rule stopping it"),
             "history": [list(h) for h in stopper.history],
             "seconds": time.perf_counter() - t0})
+        if discrepancy:
+            candidates[-1]["residuals"] = residuals
+    noise = None
+    if discrepancy:
+        noise = min(h for c in candidates for _, h, _ in c["residuals"])
+        for c in candidates:
+            k = next((s for s, _, f in c["residuals"] if f <= noise), None)
+            c["discrepancy_sweep"] = k
+            if k is not None:
+                c["kept_sweep"] = k
+                c["heldout_psnr"] = dict(c["history"])[k]
     chosen = max(range(len(candidates)), key=lambda i: (candidates[i]["heldout_psnr"], -i))
     pick = candidates[chosen]
     decision_seconds = time.perf_counter() - t_start
@@ -181,19 +209,28 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
     info = {
         "protocol": "heldout",
         "stop_rule": {**rule, "eval_every": int(eval_every),
-                      "rule": "EarlyStopper (mi_grg.training.early_stop), as gr/r2"},
+                      "rule": "EarlyStopper (mi_grg.training.early_stop), as gr/r2" + (
+                          "; sweeps by the discrepancy principle" if discrepancy else "")},
         "decision_views": fit.tolist(), "held_out_views": held.tolist(),
         "final_views": list(range(int(geo.n_views))),
         "candidates": candidates,
         "chosen": {"setting": pick["setting"], "sweeps": k,
                    "heldout_psnr": pick["heldout_psnr"]},
         "why": (f"highest held-out-view PSNR ({pick['heldout_psnr']:.3f} dB on views "
-                f"{held.tolist()}) among {len(candidates)} setting(s), at the state the rule "
-                f"kept (sweep {k}); then run on all {int(geo.n_views)} views for {k} "
+                f"{held.tolist()}) among {len(candidates)} setting(s), at the state "
+                + (f"where the fitted views' mean squared residual first reached the "
+                   f"noise level {noise:.4g} (the lowest held-out one)"
+                   if pick.get("discrepancy_sweep") else "the rule kept")
+                + f" (sweep {k}); then run on all {int(geo.n_views)} views for {k} "
                 "sweep(s)"),
         "decision_seconds": decision_seconds, "final_seconds": final_seconds,
         "oracle_seconds": total_final - final_seconds,
     }
+    if discrepancy:
+        info["discrepancy"] = {
+            "noise_mse": noise, "tau": 1.0,
+            "noise_from": "lowest mean squared held-out-view residual over the decision runs",
+            "sweeps": {str(i): c["discrepancy_sweep"] for i, c in enumerate(candidates)}}
     if scoring and curve:
         at = dict(curve)
         best_sweep, best = max(curve, key=lambda c: (c[1], -c[0]))

@@ -361,8 +361,9 @@ def asd_pocs(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, tv_iter
 #: Sweeps of ``stop="none"`` when n_iter is not given (TIGRE's examples; the paper's tables).
 FIXED_SWEEPS = 10
 #: Cap on sweeps per candidate under ``stop="heldout"``: twice TIGRE's 10. On noisy
-#: sparse views the held-out-view PSNR often keeps rising long after the 3-D PSNR peaked
-#: (docs/bench/fair_baselines.md), so the cap, like gr's iteration budget, often decides.
+#: sparse views the held-out-view PSNR often keeps rising to the cap long after the 3-D
+#: PSNR peaked; the sweep count then comes from the discrepancy principle
+#: (mi_grg.classical.heldout, step 3), and the cap bounds the noise-level estimate's runs.
 HELDOUT_SWEEP_CAP = 20
 #: ASD-POCS's TV weights tried under ``stop="heldout"``: TIGRE's default 0.002 and
 #: half-decades above it (the TV step as a fraction of the first SART update).
@@ -393,8 +394,9 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
                      seed: int = 0, holdout_every=None, oracle=None, progress: bool = True):
     """The ``--method sart`` entry point: (OS-)SART of ``case.train`` in ``case.geometry``.
 
-    Options (see ``sart``): stop ("heldout": the sweep count is chosen on held-out views
-    by gr's rule and then run on all views, mi_grg.classical.heldout; "none": exactly
+    Options (see ``sart``): stop ("heldout": the sweep count is chosen by the discrepancy
+    principle with the noise level measured on held-out views, then run on all views,
+    mi_grg.classical.heldout; "none": exactly
     n_iter sweeps, the paper's tables), n_iter (under "heldout" a cap, default
     HELDOUT_SWEEP_CAP; under "none" default FIXED_SWEEPS), blocksize (1 = SART; e.g. 20 =
     OS-SART, which moves less per sweep: raise the cap n_iter with it), relaxation (lambda, 1.0), relaxation_decay (0.99 per sweep), nonneg (True),
@@ -412,7 +414,7 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
     return run_heldout(case, lambda p, g, **kw: sart(p, g, **opts, **kw), [{}],
                        max_sweeps=HELDOUT_SWEEP_CAP if n_iter is None else n_iter,
                        name="sart", holdout_every=holdout_every, oracle=oracle,
-                       progress=progress)
+                       discrepancy=True, progress=progress)
 
 
 def _fixed(stop, holdout_every, oracle, name) -> bool:
@@ -435,8 +437,9 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
                          holdout_every=None, oracle=None, progress: bool = True):
     """The ``--method asd-pocs`` entry point (see ``asd_pocs`` for every option).
 
-    Options: stop ("heldout": the sweep count AND the TV weight alpha are chosen on
-    held-out views, then run on all views; "none": n_iter sweeps at one alpha), n_iter
+    Options: stop ("heldout": the sweep count (discrepancy principle, the noise level
+    measured on held-out views) AND the TV weight alpha (held-out PSNR) are chosen without
+    the ground truth, then run on all views; "none": n_iter sweeps at one alpha), n_iter
     (cap under "heldout", HELDOUT_SWEEP_CAP; FIXED_SWEEPS under "none"), alpha (None =
     ALPHA_GRID under "heldout" and TIGRE's 0.002 under "none"; a number or, under
     "heldout", a list of candidates), tv_iters (ng, 20), alpha_red (0.95), r_max (0.95),
@@ -458,4 +461,4 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
     return run_heldout(case, lambda p, g, **kw: asd_pocs(p, g, **opts, **kw), grid,
                        max_sweeps=HELDOUT_SWEEP_CAP if n_iter is None else n_iter,
                        name="asd-pocs", holdout_every=holdout_every, oracle=oracle,
-                       progress=progress)
+                       discrepancy=True, progress=progress)
