@@ -367,7 +367,7 @@ FIXED_SWEEPS = 10
 HELDOUT_SWEEP_CAP = 20
 #: ASD-POCS's TV weights tried under ``stop="heldout"``: TIGRE's default 0.002 and
 #: half-decades above it (the TV step as a fraction of the first SART update).
-ALPHA_GRID = (0.002, 0.006, 0.02)
+ALPHA_GRID = (0.002, 0.006, 0.02, 0.06)
 
 
 def _as_grid(value, name: str, default) -> list:
