@@ -18,8 +18,27 @@ from mi_grg.classical.joseph import forward_project
 
 def test_holdout_split():
     fit, held = holdout_split(25, 8)
-    assert held.tolist() == [0, 8, 16, 24] and len(fit) == 21
+    assert held.tolist() == [3, 9, 15, 21] and len(fit) == 21
     assert not set(fit) & set(held)
+    # Against brute force over every k-subset: the split holds out ceil(n / every) views and
+    # its widest gap between fitted neighbours (cyclic, in view steps) is the smallest any
+    # choice of that many views can leave; neither end of the arc is held out.
+    from itertools import combinations
+
+    def widest_gap(held_set, n):
+        fitted = [i for i in range(n) if i not in held_set]
+        return max((fitted[(j + 1) % len(fitted)] - fitted[j]) % n or n
+                   for j in range(len(fitted)))
+
+    for n in range(4, 15):
+        for every in range(2, n):
+            fit, held = holdout_split(n, every)
+            k = -(-n // every)
+            assert len(held) == k and sorted(fit.tolist() + held.tolist()) == list(range(n))
+            best = min(widest_gap(set(c), n) for c in combinations(range(n), k))
+            assert widest_gap(set(held.tolist()), n) == best, (n, every, held)
+            if 2 * k < n:
+                assert 0 not in held and n - 1 not in held, (n, every, held)
     fit, held = holdout_split(5, 0)
     assert held.size == 0 and fit.tolist() == [0, 1, 2, 3, 4]
     with pytest.raises(ValueError, match="holdout_every"):
@@ -56,7 +75,7 @@ def test_rule_picks_the_known_best_sweep_and_setting_then_runs_on_all_views():
     vol, info = run_heldout(case, run, [{"peak": 3}, {"peak": 6}], max_sweeps=30, name="t",
                             oracle=False, progress=False)
     rule = stop_rule()
-    held = list(range(0, 9, rule["holdout_every"]))
+    held = holdout_split(9, rule["holdout_every"])[1].tolist()
     assert info["held_out_views"] == held and info["final_views"] == list(range(9))
     # Both peaks give exact projections (scale 1): the tie goes to the first setting.
     assert info["chosen"] == {"setting": {"peak": 3}, "sweeps": 3,

@@ -65,7 +65,7 @@ def test_no_decision_uses_a_view_after_it_was_trained():
 
 def test_window_and_share_after_a_stop():
     p = ViewProtocol(25, 8, 0.75, 1500, 125)
-    assert p.held.tolist() == [0, 8, 16, 24] and len(p.fit) == 21
+    assert p.held.tolist() == [3, 9, 15, 21] and len(p.fit) == 21
     assert p.window_end == 1125                      # 0.75 x 1500, an evaluation
     assert ViewProtocol(25, 8, 0.75, 3000, 125).window_end == 2250
     assert ViewProtocol(25, 8, 0.8, 1500, 125).window_end == 1125   # rounded down to one
@@ -143,22 +143,22 @@ def spy_views(t: Trainer, monkeypatch):
 
 
 def test_training_run_records_the_views(tiny_case, monkeypatch, tmp_path):
-    """250 iterations, evaluations every 125, window 0.5 x 250 = 125: views 0 and 3 decide at
+    """250 iterations, evaluations every 125, window 0.5 x 250 = 125: views 1 and 4 decide at
     125 and train from 126; metrics.json says so."""
     t = Trainer(tiny_case, make_config("gr", iterations=250, holdout_until=0.5, **TINY),
                 progress=False)
     trained, evaluated = spy_views(t, monkeypatch)
     info = t.run()
-    assert evaluated == [(125, [0, 3])]
-    assert {v for it, v in trained if it <= 125} <= {1, 2, 4, 5}
+    assert evaluated == [(125, [1, 4])]
+    assert {v for it, v in trained if it <= 125} <= {0, 2, 3, 5}
     assert {v for it, v in trained if it > 125} == set(range(6))   # seed-fixed draw
     assert len(trained) == 250
     _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=250,
                               holdout_until=0.5, progress=False, **TINY)
     views = json.loads((tmp_path / "metrics.json").read_text())["method_info"]["views"]
-    assert views["held_out_views"] == [0, 3] and views["decision_window_end"] == 125
+    assert views["held_out_views"] == [1, 4] and views["decision_window_end"] == 125
     # densification ends at 125 here, so that evaluation is judged
-    assert [(d["iteration"], d["views"]) for d in views["decisions"]] == [(125, [0, 3])]
+    assert [(d["iteration"], d["views"]) for d in views["decisions"]] == [(125, [1, 4])]
     assert views["held_out_views_trained_from"] == 126
     assert views["iterations_on_all_views"] == 125 and views["returned_state_iteration"] == 250
     assert views["trained_on_views"] == list(range(6)) and views["stop"] is None
@@ -188,7 +188,7 @@ def test_a_stop_goes_on_from_the_kept_state_on_every_view(tiny_case, monkeypatch
     monkeypatch.setattr(t.optimizer, "step", step)
     info = t.run()
     assert [it for it, _ in evaluated] == [125, 250, 375, 500]
-    first = min(it for it, v in trained if v in (0, 3))
+    first = min(it for it, v in trained if v in (1, 4))
     assert first > 500 and all(it < first for it, _ in evaluated)
     v = info["views"]
     assert v["stop"]["iteration"] == 500 and v["stop"]["kept_iteration"] == 375

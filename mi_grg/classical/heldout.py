@@ -3,8 +3,8 @@ ASD-POCS, PDHG): decisions on held-out training views, then the chosen setting o
 
 Protocol (``run_heldout``), never looking at the ground truth:
 
-1. Split the training views with ``mi_grg.data.case.holdout_split`` (every
-   ``holdout_every``-th view held out, TrainConfig's default 8, as gr/r2).
+1. Split the training views with ``mi_grg.data.case.holdout_split`` (one view in every
+   ``holdout_every`` held out, evenly spread; TrainConfig's default 8, as gr/r2).
 2. For every candidate setting of a small grid (e.g. ASD-POCS's TV weight alpha, PDHG's
    lambda), run the method on the fitted views only; after every sweep (every
    ``eval_every`` iterations) project the volume onto the held-out views and feed their

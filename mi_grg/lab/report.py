@@ -811,7 +811,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         if b:
             md += ["SART, ASD-POCS and PDHG rows choose their sweeps (and ASD-POCS's TV "
                    "weight alpha, PDHG's lam) without the ground truth on the training views "
-                   "with every 8th held out, then run the choice on all views "
+                   "with one in 8 held out, then run the choice on all views "
                    "(mi_grg.classical.heldout): PDHG by gr's rule on the held-out PSNR, SART "
                    "and ASD-POCS by the discrepancy principle (the first sweep whose fitted-"
                    "view residual reaches the noise level measured on the held-out views), "

@@ -1,6 +1,7 @@
 """Which training views decide and which ones train, at each iteration (issue 26).
 
-Every ``holdout_every``-th training view is held out: its projection error is the early-stop
+One training view in every ``holdout_every`` is held out (evenly spread:
+``mi_grg.data.case.holdout_split``): their projection error is the early-stop
 rule's signal (``mi_grg.training.early_stop``). With sparse views every view is also worth
 training on (measured: docs/benchmarks.md, "Every view counts"), so the held-out views
 join training once no decision needs them any more:
