@@ -9,7 +9,12 @@ twin is not rerun: nothing lost on a crash), and writes docs/bench/every_view_co
 Target (issue 26): the default within 0.1 dB of ``holdout_every=0`` on average.
 
     .venv/bin/python bench/every_view_counts.py --out results/cpu [--cases shepp,needles] \\
-        [--methods gr,r2]
+        [--methods gr,r2] [--variant holdout_until=0.667]
+
+``--variant KEY=VALUE`` measures a candidate protocol without making it the default: it runs
+Table 1's gr / r2 again with that option added (under OUT/every_view_KEY_VALUE/, resumable)
+and scores those runs, instead of Table 1's, against the same twins; results in
+docs/bench/every_view_counts_KEY_VALUE.{json,md}.
 """
 from __future__ import annotations
 
@@ -34,13 +39,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/cpu", help="the suite experiment's OUT")
     ap.add_argument("--cases", default=None, help="default: every case with Table 1 runs")
     ap.add_argument("--methods", default="gr,r2")
+    ap.add_argument("--variant", default=None, metavar="KEY=VALUE",
+                    help="a candidate protocol option, run on top of Table 1's options")
     ap.add_argument("--markdown-only", action="store_true",
                     help="re-write the .md from the existing .json (no runs)")
     args = ap.parse_args(argv)
     bench = ROOT / "docs" / "bench"
+    variant = _variant(args.variant)
+    stem = "every_view_counts" + ("_" + "_".join(variant) if variant else "")
     if args.markdown_only:
-        result = json.loads((bench / "every_view_counts.json").read_text())
-        (bench / "every_view_counts.md").write_text(markdown(result))
+        result = json.loads((bench / f"{stem}.json").read_text())
+        (bench / f"{stem}.md").write_text(markdown(result))
         return 0
     import mi_grg
     from mi_grg.data.dataset import load_case
@@ -62,11 +71,19 @@ def main(argv=None) -> int:
             run_dir = out / "every_view" / name / method
             twin = _metrics(run_dir / "metrics.json")
             load = os.getloadavg()[0]
+            opts = {k: v for k, v in default["options"].items() if k not in RUN_ONLY}
             if twin is None:
-                opts = {k: v for k, v in default["options"].items() if k not in RUN_ONLY}
                 case = load_case(out / "data" / spec.data_dir_name)
                 _, twin = reconstruct(case, method, out_dir=str(run_dir), progress=False,
-                                      holdout_every=0, **opts)
+                                      **{**opts, "holdout_every": 0})
+            if variant:     # the candidate replaces Table 1's run as "default"
+                var_dir = out / f"every_view_{'_'.join(variant)}" / name / method
+                default = _metrics(var_dir / "metrics.json")
+                if default is None:
+                    load = os.getloadavg()[0]
+                    case = load_case(out / "data" / spec.data_dir_name)
+                    _, default = reconstruct(case, method, out_dir=str(var_dir),
+                                             progress=False, **{**opts, variant[0]: variant[2]})
             views = default["method_info"].get("views") or {}
             rows.append({"case": name, "method": method,
                          "default": {k: default[k] for k in ("psnr_3d", "ssim_3d", "seconds")},
@@ -79,32 +96,51 @@ def main(argv=None) -> int:
                          "loadavg_1min": load})
             print(json.dumps({k: rows[-1][k] for k in ("case", "method", "delta_db")}),
                   flush=True)
-            write(rows, mi_grg.variant(), code_version())     # after every run
-    print(markdown(write(rows, mi_grg.variant(), code_version())))
+            write(rows, mi_grg.variant(), code_version(), stem, args.variant)  # after each run
+    print(markdown(write(rows, mi_grg.variant(), code_version(), stem, args.variant)))
     return 0
 
 
-def write(rows: list, variant: str, code: str) -> dict:
+def _variant(text: str | None):
+    """"KEY=VALUE" -> (KEY, VALUE as text, VALUE parsed as a number if it is one); None."""
+    if not text:
+        return None
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"--variant must be KEY=VALUE, got {text!r}")
+    try:
+        parsed = int(value) if value.lstrip("-").isdigit() else float(value)
+    except ValueError:
+        parsed = value
+    return key, value, parsed
+
+
+def write(rows: list, variant: str, code: str, stem: str = "every_view_counts",
+          candidate: str | None = None) -> dict:
     by = {}
     for r in rows:
         by.setdefault(r["method"], []).append(r["delta_db"])
     result = {"machine": {"variant": variant, "cores": os.cpu_count(), "mi_grg": code},
-              "rows": rows, "target_db": TARGET_DB,
+              "candidate": candidate, "rows": rows, "target_db": TARGET_DB,
               "mean_delta_db": {m: statistics.mean(v) for m, v in by.items()},
               "mean_delta_db_all": statistics.mean(r["delta_db"] for r in rows)}
     bench = ROOT / "docs" / "bench"
     bench.mkdir(parents=True, exist_ok=True)
-    (bench / "every_view_counts.json").write_text(json.dumps(result, indent=2, default=str))
-    (bench / "every_view_counts.md").write_text(markdown(result))
+    (bench / f"{stem}.json").write_text(json.dumps(result, indent=2, default=str))
+    (bench / f"{stem}.md").write_text(markdown(result))
     return result
 
 
 def markdown(result: dict) -> str:
-    lines = ["# Every view counts: the default view protocol against `holdout_every=0` "
-             "(`bench/every_view_counts.py`)", "",
+    cand = result.get("candidate")
+    default = ("the Table 1 run (one training view in 8 held out, evenly spread, for the "
+               "stop rule until 0.75 x the budget, then trained)" if not cand else
+               f"Table 1's options with `{cand}` added (bench `--variant`)")
+    lines = ["# Every view counts: " + (f"the candidate `{cand}`" if cand else
+                                        "the default view protocol")
+             + " against `holdout_every=0` (`bench/every_view_counts.py`)", "",
              f"Variant {result['machine']['variant']}, {result['machine']['cores']} cores, "
-             "one run at a time; default = the Table 1 run (every 8th training view held out "
-             "for the stop rule until 0.75 x the budget, then trained), twin = the same data "
+             f"one run at a time; default = {default}, twin = the same data "
              "and options with `holdout_every=0` (all 25 views train all run). Code of each "
              "run in the JSON. delta = default − twin (3-D PSNR).", "",
              "| case | method | default PSNR / SSIM / s | `holdout_every=0` PSNR / SSIM / s "
