@@ -46,7 +46,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     bench = ROOT / "docs" / "bench"
     variant = _variant(args.variant)
-    stem = "every_view_counts" + ("_" + "_".join(variant) if variant else "")
+    tag = f"{variant[0]}_{variant[1]}" if variant else None
+    stem = "every_view_counts" + (f"_{tag}" if tag else "")
     if args.markdown_only:
         result = json.loads((bench / f"{stem}.json").read_text())
         (bench / f"{stem}.md").write_text(markdown(result))
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
                 _, twin = reconstruct(case, method, out_dir=str(run_dir), progress=False,
                                       **{**opts, "holdout_every": 0})
             if variant:     # the candidate replaces Table 1's run as "default"
-                var_dir = out / f"every_view_{'_'.join(variant)}" / name / method
+                var_dir = out / f"every_view_{tag}" / name / method
                 default = _metrics(var_dir / "metrics.json")
                 if default is None:
                     load = os.getloadavg()[0]
