@@ -115,6 +115,25 @@ def test_old_runs_read_as_held_out_all_run():
     assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": pinned}}) == []
 
 
+def test_runs_with_the_old_split_are_stale():
+    """Runs that held out views 0, 8, 16, 24 (the split before f3bf235) run again; runs with
+    today's split, or that record no held-out views, do not."""
+    from mi_grg.training.config import stale_keys
+    cfg = make_config("gr").to_dict()
+    gr = {"method": "gr", "options": {}, "n_train_views": 25,
+          "method_info": {"config": cfg, "held_out_views": [0, 8, 16, 24]}}
+    assert stale_keys(gr) == ["held_out_views"]
+    gr["method_info"]["held_out_views"] = [3, 9, 15, 21]
+    assert stale_keys(gr) == []
+    sart = {"method": "sart", "options": {}, "n_train_views": 25,
+            "method_info": {"protocol": "heldout", "held_out_views": [0, 8, 16, 24],
+                            "stop_rule": {"holdout_every": 8}}}
+    assert stale_keys(sart) == ["held_out_views"]
+    sart["method_info"]["held_out_views"] = [3, 9, 15, 21]
+    assert stale_keys(sart) == []
+    assert stale_keys({"method": "fdk", "options": {}, "n_train_views": 25}) == []
+
+
 # ---------------------------------------------------------------------------- in training
 @pytest.fixture(scope="module")
 def tiny_case():

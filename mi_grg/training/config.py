@@ -292,14 +292,17 @@ def stale_keys(m: dict) -> list:
     recorded values differ from what this code resolves the run's options to (a default
     changed since it ran; a field in ``ADDED_LATER`` that the record lacks counts as its old
     value); [] if none differ or the run is not a training run. An iterative classical run
-    (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]."""
+    (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]; a
+    run whose held-out views are not today's ``holdout_split`` (0, 8, 16, ... before f3bf235)
+    adds "held_out_views"."""
     if (m.get("method") in ("sart", "asd-pocs", "pdhg")
             and (m.get("options") or {}).get("stop", "heldout") == "heldout"
             and (m.get("method_info") or {}).get("protocol") != "heldout"):
         return ["stop"]     # ran a fixed sweep count before held-out stopping was the default
+    split = ["held_out_views"] if _split_changed(m) else []
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
-        return []
+        return split
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     opts = upgrade_config_dict({k: v for k, v in (m.get("options") or {}).items()
                                 if k in names})
@@ -308,5 +311,20 @@ def stale_keys(m: dict) -> list:
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
     used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
-    return sorted(k for k in set(now) | set(used) if now.get(k) != used.get(k))
+    return sorted([k for k in set(now) | set(used) if now.get(k) != used.get(k)] + split)
+
+
+def _split_changed(m: dict) -> bool:
+    """Whether a finished run recorded held-out views other than the ones
+    ``mi_grg.data.case.holdout_split`` gives its view count and ``holdout_every`` today."""
+    from mi_grg.data.case import holdout_split
+    info = m.get("method_info") or {}
+    held, n = info.get("held_out_views"), m.get("n_train_views")
+    every = ((info.get("config") or {}).get("holdout_every")
+             if isinstance(info.get("config"), dict) else None)
+    if every is None:      # the classical methods record their rule
+        every = (info.get("stop_rule") or {}).get("holdout_every")
+    if held is None or n is None or every is None:
+        return False
+    return [int(v) for v in held] != holdout_split(int(n), int(every))[1].tolist()
 
