@@ -45,8 +45,9 @@ def main(argv=None) -> int:
                     help="re-write the .md from the existing .json (no runs)")
     args = ap.parse_args(argv)
     bench = ROOT / "docs" / "bench"
-    variant = _variant(args.variant)
-    tag = f"{variant[0]}_{variant[1]}" if variant else None
+    from mi_grg.cli import _parse_options      # the parser of `--option KEY=VALUE`
+    variant = _parse_options([args.variant]) if args.variant else {}
+    tag = args.variant.replace("=", "_") if args.variant else None
     stem = "every_view_counts" + (f"_{tag}" if tag else "")
     if args.markdown_only:
         result = json.loads((bench / f"{stem}.json").read_text())
@@ -84,7 +85,7 @@ def main(argv=None) -> int:
                     load = os.getloadavg()[0]
                     case = load_case(out / "data" / spec.data_dir_name)
                     _, default = reconstruct(case, method, out_dir=str(var_dir),
-                                             progress=False, **{**opts, variant[0]: variant[2]})
+                                             progress=False, **{**opts, **variant})
             views = default["method_info"].get("views") or {}
             rows.append({"case": name, "method": method,
                          "default": {k: default[k] for k in ("psnr_3d", "ssim_3d", "seconds")},
@@ -100,20 +101,6 @@ def main(argv=None) -> int:
             write(rows, mi_grg.variant(), code_version(), stem, args.variant)  # after each run
     print(markdown(write(rows, mi_grg.variant(), code_version(), stem, args.variant)))
     return 0
-
-
-def _variant(text: str | None):
-    """"KEY=VALUE" -> (KEY, VALUE as text, VALUE parsed as a number if it is one); None."""
-    if not text:
-        return None
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise SystemExit(f"--variant must be KEY=VALUE, got {text!r}")
-    try:
-        parsed = int(value) if value.lstrip("-").isdigit() else float(value)
-    except ValueError:
-        parsed = value
-    return key, value, parsed
 
 
 def write(rows: list, variant: str, code: str, stem: str = "every_view_counts",

@@ -320,10 +320,8 @@ def _split_changed(m: dict) -> bool:
     from mi_grg.data.case import holdout_split
     info = m.get("method_info") or {}
     held, n = info.get("held_out_views"), m.get("n_train_views")
-    every = ((info.get("config") or {}).get("holdout_every")
-             if isinstance(info.get("config"), dict) else None)
-    if every is None:      # the classical methods record their rule
-        every = (info.get("stop_rule") or {}).get("holdout_every")
+    # gr / r2 record their config; the classical methods their stop rule
+    every = (info.get("config") or info.get("stop_rule") or {}).get("holdout_every")
     if held is None or n is None or every is None:
         return False
     return [int(v) for v in held] != holdout_split(int(n), int(every))[1].tolist()
