@@ -120,7 +120,7 @@ def markdown(result: dict) -> str:
              f"each run's start is in the JSON), code {result['machine']['mi_grg']}; "
              f"{result['reps']} repetition(s), median time.", "",
              "Held-out rows (the default): sweeps and regularisation chosen without the "
-             "ground truth on the training views, every 8th held out, then the chosen "
+             "ground truth on the training views, one in 8 held out (evenly spread), then the chosen "
              "setting run on all 25 views. PDHG: gr's early-stopping rule on the held-out "
              "PSNR. SART / ASD-POCS: the discrepancy principle, the first sweep whose fitted-"
              "view residual reaches the noise level measured on the held-out views (the "
