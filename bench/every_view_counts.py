@@ -9,9 +9,10 @@ twin is not rerun: nothing lost on a crash), and writes docs/bench/every_view_co
 Target (issue 26): the default within 0.1 dB of ``holdout_every=0`` on average.
 
     .venv/bin/python bench/every_view_counts.py --out results/cpu [--cases shepp,needles] \\
-        [--methods gr,r2] [--variant holdout_until=0.667]
+        [--methods gr,r2] [--variant holdout_until=0.667 [--variant KEY=VALUE ...]]
 
-``--variant KEY=VALUE`` measures a candidate protocol without making it the default: it runs
+``--variant KEY=VALUE`` (repeatable) measures a candidate protocol without making it the
+default: it runs
 Table 1's gr / r2 again with that option added (under OUT/every_view_KEY_VALUE/, resumable)
 and scores those runs, instead of Table 1's, against the same twins; results in
 docs/bench/every_view_counts_KEY_VALUE.{json,md}.
@@ -39,15 +40,17 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="results/cpu", help="the suite experiment's OUT")
     ap.add_argument("--cases", default=None, help="default: every case with Table 1 runs")
     ap.add_argument("--methods", default="gr,r2")
-    ap.add_argument("--variant", default=None, metavar="KEY=VALUE",
-                    help="a candidate protocol option, run on top of Table 1's options")
+    ap.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
+                    help="a candidate protocol option, run on top of Table 1's options "
+                         "(repeat for several)")
     ap.add_argument("--markdown-only", action="store_true",
                     help="re-write the .md from the existing .json (no runs)")
     args = ap.parse_args(argv)
     bench = ROOT / "docs" / "bench"
     from mi_grg.cli import _parse_options      # the parser of `--option KEY=VALUE`
-    variant = _parse_options([args.variant]) if args.variant else {}
-    tag = args.variant.replace("=", "_") if args.variant else None
+    variant = _parse_options(args.variant)
+    tag = "_".join(v.replace("=", "_") for v in args.variant) or None
+    candidate = ", ".join(args.variant) or None
     stem = "every_view_counts" + (f"_{tag}" if tag else "")
     if args.markdown_only:
         result = json.loads((bench / f"{stem}.json").read_text())
@@ -98,8 +101,8 @@ def main(argv=None) -> int:
                          "loadavg_1min": load})
             print(json.dumps({k: rows[-1][k] for k in ("case", "method", "delta_db")}),
                   flush=True)
-            write(rows, mi_grg.variant(), code_version(), stem, args.variant)  # after each run
-    print(markdown(write(rows, mi_grg.variant(), code_version(), stem, args.variant)))
+            write(rows, mi_grg.variant(), code_version(), stem, candidate)  # after each run
+    print(markdown(write(rows, mi_grg.variant(), code_version(), stem, candidate)))
     return 0
 
 

@@ -229,3 +229,68 @@ def test_holdout_every_zero_still_trains_on_every_view(tiny_case, monkeypatch):
     assert evaluated == []
     assert info["views"]["trained_on_views"] == list(range(6))
     assert info["views"]["decisions"] == [] and info["views"]["held_out_views"] == []
+
+
+def expected_draws(p: ViewProtocol, stop: Stop | None) -> np.ndarray:
+    """Each view's expected number of training draws over the run, [n_views] float64, summed
+    iteration by iteration (a uniform draw unless ``draw_weights`` says otherwise); after a
+    stop the count restarts from the kept state's."""
+    draws = np.zeros(p.n_views)
+    for it in range(1, p.end(stop) + 1):
+        known = stop if stop is not None and it > stop.iteration else None
+        if stop is not None and it == stop.iteration + 1:
+            draws[:] = 0.0                  # back to the kept state: replay its draws
+            for j in range(1, stop.kept_iteration + 1):
+                draws[p.train_views(j, None)] += 1.0 / len(p.train_views(j, None))
+        views = p.train_views(it, known)
+        w = p.draw_weights(it, known)
+        draws[views] += (np.full(len(views), 1.0 / len(views)) if w is None else w)
+    return draws
+
+
+def test_catch_up_equalises_the_expected_draws():
+    """Over random schedules: the weights are a distribution over the views the step draws
+    from; with enough iterations after the join every view's expected draws are equal at the
+    end; with too few, the held-out views take every draw and stay behind."""
+    n_equal = n_short = 0
+    for p0, stop in random_protocols(300, seed=1):
+        p = ViewProtocol(p0.n_views, p0.holdout_every, p0.holdout_until, p0.iterations,
+                         p0.eval_every, catch_up=True)
+        for it in range(1, p.end(stop) + 1):
+            known = stop if stop is not None and it > stop.iteration else None
+            w = p.draw_weights(it, known)
+            if w is None:
+                assert not p.joined(it, known)
+                continue
+            assert w.shape == p.train_views(it, known).shape and np.all(w >= 0)
+            assert abs(w.sum() - 1.0) < 1e-12
+        if not p.joined(p.end(stop), stop):
+            continue
+        d = expected_draws(p, stop)
+        held, fit = d[p.held], d[p.fit]
+        if held.min() < fit.min() - 1e-9:           # too few iterations after the join
+            n_short += 1
+            kept = stop.kept_iteration if stop else p.window_end
+            assert np.allclose(fit, kept / len(p.fit))   # fit views not drawn after it
+        else:
+            n_equal += 1
+            assert np.allclose(d, d.mean()), (p, stop, d)
+    assert n_equal > 30 and n_short > 10
+
+
+def test_catch_up_run_draws_the_held_out_views_more_often(tiny_case, monkeypatch):
+    """6 views, 1 and 4 held out to iteration 150 of 300: before the join 37.5 expected draws
+    per fit view; over the 150 after it the weights are 1/12 (fit) and 1/3 (held) per view,
+    so that each view ends at 300 / 6 = 50. The run's draws after the join follow them."""
+    cfg = make_config("gr", iterations=300, holdout_until=0.5, holdout_catch_up=True,
+                      **dict(TINY, eval_every=150))
+    t = Trainer(tiny_case, cfg, progress=False)
+    assert t.views.draw_weights(150) is None
+    np.testing.assert_allclose(t.views.draw_weights(151), [1, 4, 1, 1, 4, 1] / np.float64(12))
+    trained, _ = spy_views(t, monkeypatch)
+    info = t.run()
+    after = np.bincount([v for it, v in trained if it > 150], minlength=6)
+    assert after.sum() == 150
+    # the two held-out views together: binomial(150, 2/3), 100 +- 5.8 (uniform: 50)
+    assert 82 <= after[[1, 4]].sum() <= 118, after
+    assert info["views"]["catch_up"] is True

@@ -40,7 +40,8 @@ PRESETS = {
 # from before they existed: a finished run whose recorded config lacks one of them was
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
-ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None}
+ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
+               "holdout_catch_up": False}
 
 
 @dataclass
@@ -110,6 +111,8 @@ class TrainConfig:
     holdout_until: float = 0.75    # ... for this fraction of the iterations (the stop rule
                                    # decides only then), then train on every view; 1: held
                                    # out all run (before issue 26; mi_grg.training.views)
+    holdout_catch_up: bool = False # after that, draw the held-out views more often until
+                                   # every view's expected draws are equal (candidate)
     eval_every: int = 500
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row

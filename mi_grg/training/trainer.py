@@ -208,7 +208,7 @@ class Trainer:
         # (the research rule monitor_3d judges the ground truth: the views stay held out).
         self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
                                   1.0 if cfg.monitor_3d else cfg.holdout_until,
-                                  self.iterations, sched["eval_every"])
+                                  self.iterations, sched["eval_every"], cfg.holdout_catch_up)
         # The config's window and cap are the paper's; this run's depend on its length and grid.
         dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
                                    start=sched["densify_start"],
@@ -462,7 +462,8 @@ class Trainer:
         from mi_grg.training.losses import projection_loss, tv_3d
         cfg, geo = self.cfg, self.case.geometry
         nv, nu = geo.nDetector
-        view = int(self.rng.choice(self.views.train_views(it, self._stop)))
+        weights = self.views.draw_weights(it, self._stop)
+        view = int(self.rng.choice(self.views.train_views(it, self._stop), p=weights))
         g = Gaussians.from_raw(raw)
         ds = self._density_scale
         n = len(g)

@@ -21,6 +21,12 @@ join training once no decision needs them any more:
 Honesty: a view's error is never used for a decision once that view has been trained on
 (``test_views.py`` checks this over random schedules), and the ground truth never decides.
 
+``catch_up``: from the join on, the step draws its view with ``draw_weights`` instead of
+uniformly: the held-out views more often, so that every view's expected number of training
+draws is the same at the run's end (as far as the remaining iterations allow: if they are
+too few, only the held-out views train until the end). Off by default; a candidate protocol
+(docs/benchmarks.md, "Every view counts").
+
 ``holdout_until = 1`` is the behaviour from before: held out for the whole run, the kept
 state returned. Functions of the run's settings and of the stop (``Stop``) only, so that a
 resumed run rebuilds the same protocol from its checkpointed stopper state.
@@ -55,13 +61,15 @@ class ViewProtocol:
 
     n_views: training views; holdout_every: hold out views 0, n, 2n, ... (0: none);
     holdout_until: fraction of ``iterations`` during which they stay held out, in [0, 1];
-    iterations: the run's budget; eval_every: interval between held-out evaluations."""
+    iterations: the run's budget; eval_every: interval between held-out evaluations;
+    catch_up: after the join, draw the held-out views more often (``draw_weights``)."""
 
     n_views: int
     holdout_every: int
     holdout_until: float
     iterations: int
     eval_every: int
+    catch_up: bool = False
 
     def __post_init__(self):
         if not 0.0 <= self.holdout_until <= 1.0:
@@ -117,6 +125,27 @@ class ViewProtocol:
             return np.arange(self.n_views, dtype=np.int64)
         return self.fit
 
+    def draw_weights(self, iteration: int, stop: Stop | None = None) -> np.ndarray | None:
+        """Probabilities over ``train_views(iteration, stop)``, [len] float64, or None for a
+        uniform draw (before the join, or without ``catch_up``).
+
+        Before the join each fit view was drawn (kept state's iteration) / |fit| times on
+        average and each held-out view never; over the R iterations from the join to
+        ``end(stop)``, p_fit = (1 - k a / R) / n and p_held = p_fit + a / R (a: the fit
+        views' expected draws, k held-out of n views) make the expected totals equal; when
+        k a > R, p_fit = 0 and the held-out views share every draw."""
+        if not (self.catch_up and self.joined(iteration, stop)):
+            return None
+        join = (stop.iteration if stop is not None else self.window_end) + 1
+        kept = stop.kept_iteration if stop is not None else self.window_end
+        remaining = self.end(stop) - join + 1
+        n, k = self.n_views, len(self.held)
+        a = kept / (n - k)
+        p_fit = max(0.0, 1.0 - k * a / remaining) / n
+        w = np.full(n, p_fit)
+        w[self.held] = (1.0 - (n - k) * p_fit) / k
+        return w
+
     def decides(self, iteration: int, stop: Stop | None = None) -> bool:
         """Whether the held-out evaluation after the step of ``iteration`` may be made and
         judged (no held-out view trained yet, the rule not yet fired)."""
@@ -142,6 +171,7 @@ class ViewProtocol:
         trained = list(range(self.n_views)) if joined else self.fit.tolist()
         return {
             "holdout_until": self.holdout_until,
+            "catch_up": self.catch_up,
             "held_out_views": held,
             "decision_window_end": self.window_end if held else 0,
             # the stop rule's evaluations: each on the held-out views, none of them trained
