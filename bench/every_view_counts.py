@@ -111,8 +111,10 @@ def write(rows: list, variant: str, code: str, stem: str = "every_view_counts",
     by = {}
     for r in rows:
         by.setdefault(r["method"], []).append(r["delta_db"])
+    from mi_grg.training.config import TrainConfig
     result = {"machine": {"variant": variant, "cores": os.cpu_count(), "mi_grg": code},
-              "candidate": candidate, "rows": rows, "target_db": TARGET_DB,
+              "candidate": candidate, "default_holdout_until": TrainConfig.holdout_until,
+              "rows": rows, "target_db": TARGET_DB,
               "mean_delta_db": {m: statistics.mean(v) for m, v in by.items()},
               "mean_delta_db_all": statistics.mean(r["delta_db"] for r in rows)}
     bench = ROOT / "docs" / "bench"
@@ -125,7 +127,8 @@ def write(rows: list, variant: str, code: str, stem: str = "every_view_counts",
 def markdown(result: dict) -> str:
     cand = result.get("candidate")
     default = ("the Table 1 run (one training view in 8 held out, evenly spread, for the "
-               "stop rule until 0.75 x the budget, then trained)" if not cand else
+               f"stop rule until {result.get('default_holdout_until', 0.75)} x the budget, "
+               "then trained)" if not cand else
                f"Table 1's options with `{cand}` added (bench `--variant`)")
     lines = ["# Every view counts: " + (f"the candidate `{cand}`" if cand else
                                         "the default view protocol")

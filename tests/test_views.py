@@ -111,7 +111,7 @@ def test_old_runs_read_as_held_out_all_run():
     del cfg["holdout_until"]
     assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": cfg}}) == \
         ["holdout_until"]
-    pinned = {**cfg, "holdout_until": 0.75}
+    pinned = {**cfg, "holdout_until": make_config("gr").holdout_until}
     assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": pinned}}) == []
 
 

@@ -108,9 +108,11 @@ class TrainConfig:
     lr_final_ratio: float = 0.1
     # --- early stopping without ground truth
     holdout_every: int = 8         # hold out every n-th training view; 0: none
-    holdout_until: float = 0.75    # ... for this fraction of the iterations (the stop rule
+    holdout_until: float = 0.667   # ... for this fraction of the iterations (the stop rule
                                    # decides only then), then train on every view; 1: held
-                                   # out all run (before issue 26; mi_grg.training.views)
+                                   # out all run (before issue 26; mi_grg.training.views).
+                                   # Why 2/3: the shortest window in which the rule can
+                                   # still fire after densification (ends at 1/2)
     holdout_catch_up: bool = False # after that, draw the held-out views more often until
                                    # every view's expected draws are equal (candidate)
     eval_every: int = 500
