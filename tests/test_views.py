@@ -115,6 +115,17 @@ def test_old_runs_read_as_held_out_all_run():
     assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": pinned}}) == []
 
 
+def test_the_window_does_not_make_runs_without_held_out_views_stale():
+    """holdout_until / holdout_catch_up act on held-out views only: a holdout_every=0 run
+    recorded under another window is current, a run with held-out views is not."""
+    from mi_grg.training.config import stale_keys
+    for every, want in ((0, []), (8, ["holdout_catch_up", "holdout_until"])):
+        cfg = {**make_config("gr", holdout_every=every).to_dict(), "holdout_until": 0.75,
+               "holdout_catch_up": True}
+        m = {"method": "gr", "options": {"holdout_every": every}, "method_info": {"config": cfg}}
+        assert stale_keys(m) == want
+
+
 def test_runs_with_the_old_split_are_stale():
     """Runs that held out views 0, 8, 16, 24 (the split before f3bf235) run again; runs with
     today's split, or that record no held-out views, do not."""

@@ -43,6 +43,10 @@ PRESETS = {
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
                "holdout_catch_up": False}
 
+#: Options of the held-out window (mi_grg.training.views): without held-out views
+#: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
+WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
+
 
 @dataclass
 class TrainConfig:
@@ -316,7 +320,10 @@ def stale_keys(m: dict) -> list:
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
     used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
-    return sorted([k for k in set(now) | set(used) if now.get(k) != used.get(k)] + split)
+    differ = {k for k in set(now) | set(used) if now.get(k) != used.get(k)}
+    if now.get("holdout_every") == 0 and used.get("holdout_every") == 0:
+        differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
+    return sorted(differ) + split
 
 
 def _split_changed(m: dict) -> bool:
