@@ -136,8 +136,7 @@ class ViewProtocol:
         k a > R, p_fit = 0 and the held-out views share every draw."""
         if not (self.catch_up and self.joined(iteration, stop)):
             return None
-        join = (stop.iteration if stop is not None else self.window_end) + 1
-        kept = stop.kept_iteration if stop is not None else self.window_end
+        join, kept = self._join(stop)
         remaining = self.end(stop) - join + 1
         n, k = self.n_views, len(self.held)
         a = kept / (n - k)
@@ -145,6 +144,14 @@ class ViewProtocol:
         w = np.full(n, p_fit)
         w[self.held] = (1.0 - (n - k) * p_fit) / k
         return w
+
+    def _join(self, stop: Stop | None) -> tuple[int, int]:
+        """(first iteration on every view, iteration of the state it starts from), given
+        that the held-out views join: after the stop's iteration from its kept state, else
+        after the window's end."""
+        if stop is not None:
+            return stop.iteration + 1, stop.kept_iteration
+        return self.window_end + 1, self.window_end
 
     def decides(self, iteration: int, stop: Stop | None = None) -> bool:
         """Whether the held-out evaluation after the step of ``iteration`` may be made and
@@ -165,9 +172,7 @@ class ViewProtocol:
         ``returned_iteration`` the iteration whose state the run returns."""
         held = self.held.tolist()
         joined = self.joined(iteration, stop)
-        join_at = None
-        if joined:
-            join_at = (stop.iteration if stop is not None else self.window_end) + 1
+        join_at = self._join(stop)[0] if joined else None
         trained = list(range(self.n_views)) if joined else self.fit.tolist()
         return {
             "holdout_until": self.holdout_until,
