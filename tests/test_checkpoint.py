@@ -22,7 +22,7 @@ from mi_grg.training.trainer import Trainer
 OLD_CHECKPOINT = Path(__file__).parent / "data" / "checkpoint_42a14d5.npz"
 # holdout_until=1: the view protocol of 42a14d5 (held out all run; issue 26 came later)
 OLD_OPTIONS = dict(iterations=60, seed=5, n_points=120, max_gaussians=800, eval_every=100,
-                   checkpoint_every=25, holdout_every=3, holdout_until=1.0)
+                   checkpoint_every=25, holdout_every=3, holdout_until=1.0, stop_noise=0.0)
 
 
 @pytest.fixture(scope="module")

@@ -204,6 +204,8 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     monkeypatch.setattr(t.stopper, "update", spy)
     info = t.run()
     assert sorted(seen) == [375, 500, 625]
+    # the evaluations during densification are not judged, but inform the noise margin
+    assert [i for i, _ in t.stopper.seen] == [125, 250, 375, 500, 625]
     assert info["iterations_run"] == 625 < info["iterations_planned"]
     assert "held-out" in info["stopped_by"] and info["best_iteration"] == 375
     assert info["kept_iteration"] == kept_at
@@ -211,8 +213,9 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     assert not np.array_equal(seen[375], seen[500])       # the two candidates differ
     # the config's patience reaches the stopper (default 2: mi_grg.training.early_stop says why)
     assert make_config("gr").stop_patience == 2
-    assert Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, **TINY),
-                   progress=False).stopper.patience == 3
+    t3 = Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, stop_noise=0.5,
+                                        **TINY), progress=False)
+    assert (t3.stopper.patience, t3.stopper.noise) == (3, 0.5)
 
 
 def test_3d_psnr_is_logged_at_evaluations_when_there_is_a_ground_truth(tiny_case, tmp_path):

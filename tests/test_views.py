@@ -126,6 +126,24 @@ def test_the_window_does_not_make_runs_without_held_out_views_stale():
         assert stale_keys(m) == want
 
 
+def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
+    """stop_noise only widens the margin: a run recorded without it (0) that never stopped and
+    returned its last state is current; one that stopped, or that returned a kept state, or
+    that ran with a wider margin than today's, runs again."""
+    from mi_grg.training.config import stale_keys
+    cfg = {k: v for k, v in make_config("gr").to_dict().items() if k != "stop_noise"}
+
+    def run(stop, returned, used=None):
+        c = cfg if used is None else {**cfg, "stop_noise": used}
+        return {"method": "gr", "options": {}, "n_train_views": 25,
+                "method_info": {"config": c, "iterations_run": 1500,
+                                "views": {"stop": stop, "returned_state_iteration": returned}}}
+    assert stale_keys(run(None, 1500)) == []
+    assert stale_keys(run({"iteration": 1125, "kept_iteration": 875}, 1417)) == ["stop_noise"]
+    assert stale_keys(run(None, 1375)) == ["stop_noise"]       # held out all run: kept state
+    assert stale_keys(run(None, 1500, used=3.0)) == ["stop_noise"]
+
+
 def test_runs_with_the_old_split_are_stale():
     """Runs that held out views 0, 8, 16, 24 (the split before f3bf235) run again; runs with
     today's split, or that record no held-out views, do not."""
@@ -138,10 +156,13 @@ def test_runs_with_the_old_split_are_stale():
     assert stale_keys(gr) == []
     sart = {"method": "sart", "options": {}, "n_train_views": 25,
             "method_info": {"protocol": "heldout", "held_out_views": [0, 8, 16, 24],
-                            "stop_rule": {"holdout_every": 8}}}
+                            "stop_rule": {"holdout_every": 8, "noise": 2.0}}}
     assert stale_keys(sart) == ["held_out_views"]
     sart["method_info"]["held_out_views"] = [3, 9, 15, 21]
     assert stale_keys(sart) == []
+    # decided before the scatter margin (its rule records no noise): run again
+    del sart["method_info"]["stop_rule"]["noise"]
+    assert stale_keys(sart) == ["stop_noise"]
     assert stale_keys({"method": "fdk", "options": {}, "n_train_views": 25}) == []
 
 

@@ -8,7 +8,7 @@ Protocol (``run_heldout``), never looking at the ground truth:
 2. For every candidate setting of a small grid (e.g. ASD-POCS's TV weight alpha, PDHG's
    lambda), run the method on the fitted views only; after every sweep (every
    ``eval_every`` iterations) project the volume onto the held-out views and feed their
-   PSNR to an ``EarlyStopper`` with TrainConfig's drop / patience / keep (the rule object
+   PSNR to an ``EarlyStopper`` with TrainConfig's drop / patience / noise / keep (the rule object
    gr and r2 use). It ends the run; its ``kept_iteration`` is that setting's sweep count.
 3. With ``discrepancy`` (SART and ASD-POCS), the sweep count comes instead from the
    discrepancy principle (Morozov): the first sweep whose mean squared residual on the
@@ -57,7 +57,7 @@ def stop_rule() -> dict:
     from mi_grg.training.config import TrainConfig
     c = TrainConfig()
     return {"holdout_every": c.holdout_every, "drop": c.stop_drop,
-            "patience": c.stop_patience, "keep": c.keep_state}
+            "patience": c.stop_patience, "noise": c.stop_noise, "keep": c.keep_state}
 
 
 def check_stop(stop: str) -> str:
@@ -127,7 +127,7 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
     candidates = []
     for setting in grid:
         stopper = EarlyStopper(drop=rule["drop"], patience=rule["patience"],
-                               keep=rule["keep"], label="held-out PSNR")
+                               noise=rule["noise"], keep=rule["keep"], label="held-out PSNR")
         last, residuals = [0], []
 
         def judge(it, vol, stopper=stopper, last=last, residuals=residuals):

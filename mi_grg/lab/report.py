@@ -379,20 +379,24 @@ def _col(rows, key):
     return out
 
 
-def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0):
-    """(iteration at which ``EarlyStopper(drop, patience)`` would stop on the logged held-out
-    PSNR or None, the best iteration); ``drop`` and ``patience`` default to TrainConfig's
-    stop_drop and stop_patience. Like training, only evaluations at iterations >= ``start``
-    (the end of densification) are judged."""
+def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0, noise=None):
+    """(iteration at which ``EarlyStopper(drop, patience, noise)`` would stop on the logged
+    held-out PSNR or None, the best iteration); ``drop``, ``patience`` and ``noise`` default
+    to TrainConfig's stop_drop, stop_patience and stop_noise. Like training, only evaluations
+    at iterations >= ``start`` (the end of densification) are judged; the earlier ones inform
+    the noise margin."""
     from mi_grg.training.config import TrainConfig
     from mi_grg.training.early_stop import EarlyStopper
     cfg = TrainConfig()
     st = EarlyStopper(drop=cfg.stop_drop if drop is None else drop,
-                      patience=cfg.stop_patience if patience is None else patience)
+                      patience=cfg.stop_patience if patience is None else patience,
+                      noise=cfg.stop_noise if noise is None else noise)
     for it, v in zip(iterations, heldout):
-        if v is None or it < start:
+        if v is None:
             continue
-        if st.update(int(it), v) == "stop":
+        if it < start:
+            st.observe(int(it), v)
+        elif st.update(int(it), v) == "stop":
             return int(it), st.best_iteration
     return None, st.best_iteration
 
@@ -868,7 +872,8 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
         md += ["Held-out-view PSNR (the early-stopping signal, no ground truth) and 3-D PSNR "
                "(when logged) against iteration. Solid: the run with early stopping disabled "
                "(stop_drop 0.99) over the full schedule, with the iteration where the default "
-               f"rule (stop when held-out PSNR is more than {100 * tc.stop_drop:g} % below "
+               f"rule (stop when held-out PSNR is more than {100 * tc.stop_drop:g} % and "
+               f"{tc.stop_noise:g} x its scatter between evaluations below "
                f"its best at {tc.stop_patience} evaluation(s) in a row, judged once "
                "densification has ended) would have stopped it (dotted, replayed from its "
                "log); dashed: the normal run, its actual stop dash-dotted.", ""]

@@ -96,7 +96,7 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
         arrays["dens_grad"] = dens["grad_accum"]
         arrays["dens_count"] = dens["view_count"]
     # Before the first evaluation the stopper has seen nothing: stored as None, as always.
-    stop = stopper.state_dict() if stopper.history else None
+    stop = stopper.state_dict() if stopper.history or stopper.seen else None
     meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
             "stopper": stop, "stopped_by": state.stopped_by,
             "seconds": state.seconds, "config": cfg.to_dict(), "time_plan": state.time_plan,

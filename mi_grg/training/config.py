@@ -41,7 +41,7 @@ PRESETS = {
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
-               "holdout_catch_up": False}
+               "holdout_catch_up": False, "stop_noise": 0.0}
 
 #: Options of the held-out window (mi_grg.training.views): without held-out views
 #: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
@@ -123,7 +123,10 @@ class TrainConfig:
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row
                                    # (1: the paper's rule; why 2: mi_grg.training.early_stop)
-    keep_state: str = "latest"     # state kept: "latest" within stop_drop of the best
+    stop_noise: float = 2.0        # ... and by more than this many times the held-out
+                                   # PSNR's own scatter between evaluations (0: stop_drop
+                                   # alone; why: mi_grg.training.early_stop)
+    keep_state: str = "latest"     # state kept: "latest" within the stop margin of the best
                                    # held-out PSNR, or "best" (why: mi_grg.training.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
@@ -303,12 +306,17 @@ def stale_keys(m: dict) -> list:
     value); [] if none differ or the run is not a training run. An iterative classical run
     (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]; a
     run whose held-out views are not today's ``holdout_split`` (0, 8, 16, ... before f3bf235)
-    adds "held_out_views"."""
+    adds "held_out_views", and such a classical run decided under another ``stop_noise``
+    adds "stop_noise" (its stop margin; gr / r2: ``_margin_inert``)."""
     if (m.get("method") in ("sart", "asd-pocs", "pdhg")
             and (m.get("options") or {}).get("stop", "heldout") == "heldout"
             and (m.get("method_info") or {}).get("protocol") != "heldout"):
         return ["stop"]     # ran a fixed sweep count before held-out stopping was the default
     split = ["held_out_views"] if _split_changed(m) else []
+    if m.get("method") in ("sart", "asd-pocs", "pdhg"):
+        rule = (m.get("method_info") or {}).get("stop_rule") or {}
+        if rule and float(rule.get("noise", ADDED_LATER["stop_noise"])) != TrainConfig().stop_noise:
+            split.append("stop_noise")   # decided under another stop margin
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return split
@@ -323,7 +331,20 @@ def stale_keys(m: dict) -> list:
     differ = {k for k in set(now) | set(used) if now.get(k) != used.get(k)}
     if now.get("holdout_every") == 0 and used.get("holdout_every") == 0:
         differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
+    if "stop_noise" in differ and _margin_inert(m, used, now):
+        differ.discard("stop_noise")
     return sorted(differ) + split
+
+
+def _margin_inert(m: dict, used: dict, now: dict) -> bool:
+    """Whether today's larger ``stop_noise`` leaves a finished run as it was: the rule never
+    fired and the run returned its last state, so a wider margin (which can only postpone a
+    stop and only moves the kept state) changes nothing."""
+    views = (m.get("method_info") or {}).get("views") or {}
+    last = (m.get("method_info") or {}).get("iterations_run")
+    return (float(now.get("stop_noise", 0)) >= float(used.get("stop_noise", 0))
+            and "stop" in views and views["stop"] is None
+            and last is not None and views.get("returned_state_iteration") == last)
 
 
 def _split_changed(m: dict) -> bool:

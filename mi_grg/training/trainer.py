@@ -164,7 +164,7 @@ class Trainer:
             raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
                              "this case has none (vol_gt.npy); use the held-out views")
         self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
-                                    keep=cfg.keep_state)
+                                    keep=cfg.keep_state, noise=cfg.stop_noise)
         self.graph = None
         # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
         # set with the graph: constant until the next rebuild.
@@ -537,7 +537,9 @@ class Trainer:
         row["heldout_psnr"] = self._heldout_psnr(raw)
         watched = row.get("psnr_3d") if cfg.monitor_3d else row["heldout_psnr"]
         # Densification reshapes the model; judge (and keep) states only after it.
-        if watched is not None and it >= self.sched["densify_stop"]:
+        if watched is not None and it < self.sched["densify_stop"]:
+            self.stopper.observe(it, watched)     # informs the rule's noise margin only
+        elif watched is not None:
             if cfg.monitor_3d:
                 self.stopper.label = "3-D PSNR vs ground truth (research option)"
             verdict = self.stopper.update(it, watched)
