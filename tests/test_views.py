@@ -206,8 +206,13 @@ def test_training_run_records_the_views(tiny_case, monkeypatch, tmp_path):
     assert len(trained) == 250
     _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=250,
                               holdout_until=0.5, progress=False, **TINY)
-    views = json.loads((tmp_path / "metrics.json").read_text())["method_info"]["views"]
+    info_m = json.loads((tmp_path / "metrics.json").read_text())["method_info"]
+    views = info_m["views"]
     assert views["held_out_views"] == [1, 4] and views["decision_window_end"] == 125
+    # one evaluation: too few to measure a scatter, so the margin is 0.5 % of the best
+    margin = info_m["stop_margin"]
+    assert (margin["drop"], margin["noise"], margin["scatter_db"]) == (0.005, 2.0, 0.0)
+    assert margin["margin_db"] == pytest.approx(0.005 * views["decisions"][0]["heldout_psnr"])
     # densification ends at 125 here, so that evaluation is judged
     assert [(d["iteration"], d["views"]) for d in views["decisions"]] == [(125, [1, 4])]
     assert views["held_out_views_trained_from"] == 126

@@ -600,6 +600,12 @@ class Trainer:
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
                    "views": self.views.record(st.iteration, stop, self.stopper.history,
                                               self.stopper.reason, returned),
+                   # the margin the last decision used (mi_grg.training.early_stop)
+                   "stop_margin": {"drop": cfg.stop_drop, "noise": cfg.stop_noise,
+                                   "scatter_db": self.stopper.scatter(),
+                                   "margin_db": (self.stopper.margin()
+                                                 if math.isfinite(self.stopper.best)
+                                                 else None)},
                    "time_plan": self.time_plan}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
