@@ -29,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mi_grg.training.config import TrainConfig  # noqa: E402
 from mi_grg.training.early_stop import EarlyStopper  # noqa: E402
 
 NOISES = (0.0, 1.0, 2.0, 3.0)
@@ -120,7 +121,8 @@ def markdown(res: dict) -> str:
     md = ["# Early-stop rule on noisy held-out curves (`bench/stop_rule.py`)", "",
           f"{res['trials']} synthetic curves per cell (seed 0), `EarlyStopper(drop=0.005, "
           "patience=2, noise=z)`; sigma: the held-out PSNR's scatter per evaluation (dB), "
-          "slope: its trend per judged evaluation (dB).", "",
+          "slope: its trend per judged evaluation (dB). TrainConfig's default: "
+          f"`stop_noise = {TrainConfig().stop_noise:g}`.", "",
           "## Runs stopped while the held-out PSNR is level or rising", "",
           "| schedule (unjudged + judged evaluations) | sigma | slope | "
           + " | ".join(f"z = {x}" for x in z) + " |",

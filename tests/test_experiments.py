@@ -341,16 +341,17 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
     w_its = list(range(10, 110, 10))
     assert replay_early_stop(w_its, wobbly, patience=2, noise=0) == (80, 60)
     assert replay_early_stop(w_its, wobbly) == (None, 100)
+    falls = [10.0, 13.0, 12.9, 12.95, 12.9, 12.0, 11.9]      # a drop well beyond the scatter
     out = tmp_path / "res"
     d = _fake_run(out, "iterations", "c1", "gr-nostop", "HO", "gr", psnr_3d=20.0,
                   method_info={"iterations_run": 50, "iterations_planned": 50,
                                "stopped_by": "iteration budget (50) reached"})
     (d / "train_log.csv").write_text(
         "iteration,seconds,loss,heldout_psnr,psnr_3d,n_gaussians\n" + "".join(
-            f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its2, vals2)))
+            f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its2, falls)))
     md = write_report(out, tmp_path / "r.md").read_text()
-    # the report replays the default rule (patience 2; the scatter margin, at most 0.10 dB
-    # here, does not save 12.9 and 12.8)
+    # the report replays the default rule (patience 2, margin >= 3 x the scatter)
+    assert replay_early_stop(its2, falls) == (60, 20)
     assert "replayed_stop: 60" in md and "best_heldout_iteration: 20" in md
     assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
     assert len(load_runs(out)["iterations"]) == 1

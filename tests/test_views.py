@@ -141,7 +141,7 @@ def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
     assert stale_keys(run(None, 1500)) == []
     assert stale_keys(run({"iteration": 1125, "kept_iteration": 875}, 1417)) == ["stop_noise"]
     assert stale_keys(run(None, 1375)) == ["stop_noise"]       # held out all run: kept state
-    assert stale_keys(run(None, 1500, used=3.0)) == ["stop_noise"]
+    assert stale_keys(run(None, 1500, used=4.0)) == ["stop_noise"]
 
 
 def test_runs_with_the_old_split_are_stale():
@@ -156,7 +156,7 @@ def test_runs_with_the_old_split_are_stale():
     assert stale_keys(gr) == []
     sart = {"method": "sart", "options": {}, "n_train_views": 25,
             "method_info": {"protocol": "heldout", "held_out_views": [0, 8, 16, 24],
-                            "stop_rule": {"holdout_every": 8, "noise": 2.0}}}
+                            "stop_rule": {"holdout_every": 8, "noise": 3.0}}}
     assert stale_keys(sart) == ["held_out_views"]
     sart["method_info"]["held_out_views"] = [3, 9, 15, 21]
     assert stale_keys(sart) == []
@@ -211,7 +211,7 @@ def test_training_run_records_the_views(tiny_case, monkeypatch, tmp_path):
     assert views["held_out_views"] == [1, 4] and views["decision_window_end"] == 125
     # one evaluation: too few to measure a scatter, so the margin is 0.5 % of the best
     margin = info_m["stop_margin"]
-    assert (margin["drop"], margin["noise"], margin["scatter_db"]) == (0.005, 2.0, 0.0)
+    assert (margin["drop"], margin["noise"], margin["scatter_db"]) == (0.005, 3.0, 0.0)
     assert margin["margin_db"] == pytest.approx(0.005 * views["decisions"][0]["heldout_psnr"])
     # densification ends at 125 here, so that evaluation is judged
     assert [(d["iteration"], d["views"]) for d in views["decisions"]] == [(125, [1, 4])]

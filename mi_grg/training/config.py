@@ -123,7 +123,7 @@ class TrainConfig:
     stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
     stop_patience: int = 2         # ... below its best at this many evaluations in a row
                                    # (1: the paper's rule; why 2: mi_grg.training.early_stop)
-    stop_noise: float = 2.0        # ... and by more than this many times the held-out
+    stop_noise: float = 3.0        # ... and by more than this many times the held-out
                                    # PSNR's own scatter between evaluations (0: stop_drop
                                    # alone; why: mi_grg.training.early_stop)
     keep_state: str = "latest"     # state kept: "latest" within the stop margin of the best
