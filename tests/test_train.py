@@ -26,19 +26,22 @@ def tiny_case():
 
 @pytest.mark.slow
 def test_gr_beats_fdk_and_sart_clearly(tmp_path):
-    """The small-case end-to-end check: 48^3 needles, 25 noisy views (about a minute)."""
+    """The small-case end-to-end check: 48^3 needles, 25 noisy views (about a minute).
+    SART stops by its held-out protocol (the discrepancy principle), which puts it level
+    with 400 gr iterations here (35.3 dB both); 1000 iterations lead it by ~4 dB."""
+    from mi_grg.data.case import holdout_split
     geo = default_geometry(n=48, det=72, views=25)
     case = simulate_case("needles", geo, default_test_angles(5), NoiseModel(), seed=0)
     _, fdk = mi_grg.reconstruct(case, "fdk")
     _, sart = mi_grg.reconstruct(case, "sart", progress=False)
-    _, gr = mi_grg.reconstruct(case, "gr", out_dir=tmp_path, iterations=400, n_points=8000,
+    _, gr = mi_grg.reconstruct(case, "gr", out_dir=tmp_path, iterations=1000, n_points=8000,
                                max_gaussians=15000, progress=False)
     best = max(fdk["psnr_3d"], sart["psnr_3d"])
     assert gr["psnr_3d"] > best + 1.5, (gr["psnr_3d"], fdk["psnr_3d"], sart["psnr_3d"])
     assert gr["ssim_3d"] > max(fdk["ssim_3d"], sart["ssim_3d"])
     info = gr["method_info"]
-    assert info["n_gaussians"] <= 15000 and info["iterations_run"] <= 400
-    assert info["held_out_views"] == list(range(0, 25, 8))
+    assert info["n_gaussians"] <= 15000 and info["iterations_run"] <= 1000
+    assert info["held_out_views"] == holdout_split(25, 8)[1].tolist()
 
 
 def test_outputs_log_and_plot(tiny_case, tmp_path):
