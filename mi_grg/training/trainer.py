@@ -402,6 +402,18 @@ class Trainer:
                                                             s=self.cfg.graph_s))
         return voxelize(g, self.case.geometry, extent=self.extent, density_scale=density_scale)
 
+    def field_gaussians(self) -> Gaussians:
+        """The returned state as plain Gaussians whose sum is the reconstruction: with the
+        graph field, each density times its multiplier 1 + sum_i w_ij (what gaussians.npz /
+        .ply hold, so that they render ``volume()`` without the graph)."""
+        g = Gaussians.from_raw({k: dr.detach(v) for k, v in self.state.raw.items()})
+        scale = self.final_density_scale
+        if scale is None and self.cfg.use_graph_field:
+            from mi_grg.training.graph import build_graph, graph_density_scale
+            scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
+                                                    s=self.cfg.graph_s))
+        return g if scale is None else g.replace(densities=g.densities * scale)
+
     # ------------------------------------------------------------------ the loop
     def run(self) -> dict:
         """Train to the end of the budget or an early stop; returns the run's summary and
@@ -614,7 +626,7 @@ class Trainer:
             self._save_checkpoint()
             write_log(self.out / "train_log.csv", st.log)
             plot_log(self.out / "train_log.png", st.log, returned)
-            g = Gaussians.from_raw(final)
+            g = self.field_gaussians()
             g.save_npz(self.out / "gaussians.npz")
             save_ply(g, self.out / "gaussians.ply")
         return summary
