@@ -8,11 +8,11 @@ curves shaped like ours: a rise from 20 to 26.5 dB over the unjudged evaluations
 (densification), then a straight trend over the judged ones, plus independent Gaussian
 scatter of sigma dB per evaluation (our runs: median 0.17 dB, up to 0.7). Two schedules:
 64^3 (1500 iterations: 6 unjudged + 3 judged evaluations in the 2/3 window) and 128^3
-(3000: 12 + 5; and 12 + 13 with the views held out all run). With ``--results DIR``, the rule
-is also replayed on every held-out curve logged under DIR (``train_log.csv``), judged from
-the run's end of densification.
+(3000: 12 + 5; and 12 + 13 with the views held out all run). The rule is also replayed on
+every held-out curve logged under ``--results DIR`` (default: the repository's results/, the
+experiments' output, when it exists), judged from the run's end of densification.
 
-    .venv/bin/python bench/stop_rule.py [--trials 4000] [--results results/cpu]
+    .venv/bin/python bench/stop_rule.py [--trials 4000] [--results results]
 
 Writes docs/bench/stop_rule.{json,md}; seconds.
 """
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -158,16 +159,17 @@ def markdown(res: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=4000)
-    ap.add_argument("--results", default=None,
-                    help="replay the rule on every train_log.csv under this folder")
+    ap.add_argument("--results", default=str(ROOT / "results"),
+                    help="replay the rule on every train_log.csv under this folder "
+                         "(skipped when it does not exist)")
     ap.add_argument("--json", default=str(ROOT / "docs/bench/stop_rule.json"))
     ap.add_argument("--md", default=str(ROOT / "docs/bench/stop_rule.md"))
     args = ap.parse_args(argv)
     if args.trials < 10:
         ap.error(f"--trials must be >= 10, got {args.trials}")
     res = {"trials": args.trials, **monte_carlo(args.trials)}
-    if args.results:
-        res["results"] = args.results
+    if args.results and Path(args.results).is_dir():
+        res["results"] = os.path.relpath(args.results, ROOT)
         res["replay"] = replay(Path(args.results))
     Path(args.json).write_text(json.dumps(res, indent=1))
     Path(args.md).write_text(markdown(res))
