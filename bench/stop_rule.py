@@ -6,7 +6,7 @@ before it: 0.5 % of the best alone).
 Monte Carlo with ``mi_grg.training.early_stop.EarlyStopper`` itself on synthetic held-out
 curves shaped like ours: a rise from 20 to 26.5 dB over the unjudged evaluations
 (densification), then a straight trend over the judged ones, plus independent Gaussian
-scatter of sigma dB per evaluation (our runs: median 0.17 dB, up to 0.7). Two schedules:
+scatter of sigma dB per evaluation (our runs: median 0.15 dB, up to 0.53). Two schedules:
 64^3 (1500 iterations: 6 unjudged + 3 judged evaluations in the 2/3 window) and 128^3
 (3000: 12 + 5; and 12 + 13 with the views held out all run). The rule is also replayed on
 every held-out curve logged under ``--results DIR`` (default: the repository's results/, the
@@ -30,6 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mi_grg.lab.report import replay_early_stop  # noqa: E402
 from mi_grg.training.config import TrainConfig  # noqa: E402
 from mi_grg.training.early_stop import EarlyStopper  # noqa: E402
 
@@ -44,13 +45,9 @@ DECLINE = -0.1                   # dB per evaluation: a real decline
 
 def _judge(values, n_unjudged, noise, drop=0.005, patience=2):
     """Index (among the judged evaluations) where the rule stops, or None."""
-    s = EarlyStopper(drop=drop, patience=patience, noise=noise)
-    for i, v in enumerate(values):
-        if i < n_unjudged:
-            s.observe(i, float(v))
-        elif s.update(i, float(v)) == "stop":
-            return i - n_unjudged
-    return None
+    stop, _ = replay_early_stop(range(len(values)), [float(v) for v in values], drop=drop,
+                                patience=patience, start=n_unjudged, noise=noise)
+    return None if stop is None else stop - n_unjudged
 
 
 def _curve(rng, n_unjudged, n_judged, slope, sigma):
@@ -102,16 +99,13 @@ def replay(results: Path) -> list:
             continue
         row = {"run": str(log.parent.relative_to(results)), "evaluations": len(pts),
                "judged": sum(it >= start for it, _ in pts)}
+        its, vals = zip(*pts)
         for z in NOISES:
-            s = EarlyStopper(drop=0.005, patience=2, noise=z)
-            stop = None
-            for it, v in pts:
-                if it < start:
-                    s.observe(it, v)
-                elif s.update(it, v) == "stop":
-                    stop = it
-                    break
-            row[str(z)] = stop
+            row[str(z)] = replay_early_stop(its, vals, drop=0.005, patience=2, start=start,
+                                            noise=z)[0]
+        s = EarlyStopper()
+        for it, v in pts:
+            s.observe(it, v)
         row["scatter"] = s.scatter()
         rows.append(row)
     return rows

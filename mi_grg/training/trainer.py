@@ -395,24 +395,25 @@ class Trainer:
         from mi_grg.core.voxelizer import voxelize
         if raw is None:
             raw, density_scale = self.state.raw, self.final_density_scale
-        g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
-        if density_scale is None and self.cfg.use_graph_field:
-            from mi_grg.training.graph import build_graph, graph_density_scale
-            density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
-                                                            s=self.cfg.graph_s))
+        g, density_scale = self._field(raw, density_scale)
         return voxelize(g, self.case.geometry, extent=self.extent, density_scale=density_scale)
 
     def field_gaussians(self) -> Gaussians:
         """The returned state as plain Gaussians whose sum is the reconstruction: with the
         graph field, each density times its multiplier 1 + sum_i w_ij (what gaussians.npz /
         .ply hold, so that they render ``volume()`` without the graph)."""
-        g = Gaussians.from_raw({k: dr.detach(v) for k, v in self.state.raw.items()})
-        scale = self.final_density_scale
-        if scale is None and self.cfg.use_graph_field:
-            from mi_grg.training.graph import build_graph, graph_density_scale
-            scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
-                                                    s=self.cfg.graph_s))
+        g, scale = self._field(self.state.raw, self.final_density_scale)
         return g if scale is None else g.replace(densities=g.densities * scale)
+
+    def _field(self, raw, density_scale):
+        """(Gaussians of ``raw``, their graph-field multiplier or None): ``density_scale`` if
+        given, else, with the graph field on, the one of a graph built on these positions."""
+        g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
+        if density_scale is None and self.cfg.use_graph_field:
+            from mi_grg.training.graph import build_graph, graph_density_scale
+            density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
+                                                            s=self.cfg.graph_s))
+        return g, density_scale
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> dict:
