@@ -9,6 +9,11 @@ the training runs take minutes; the seed is fixed).
     python bench/reconstruct.py                   # 64^3, phantoms shepp, needles, shells
     python bench/reconstruct.py --sizes 64 128    # also 128^3 (about an hour more)
     python bench/reconstruct.py --sizes 128 --phantoms shepp --methods gr
+    python bench/reconstruct.py --methods gr --option extent=4.5 --option iterations=1500
+
+``--option KEY=VALUE`` goes to r2 and gr (TrainConfig fields, as ``mi-grg reconstruct
+--option``); such cells are kept apart from the default ones (their options are part of
+the cell). ``MI_GRG_VARIANT=cuda_ad_mono`` runs the cells on a GPU.
 
 The cells measured replace the same (phantom, size, method) cells of an existing
 reconstruct.json, the others are kept (each row records its date and code version);
@@ -30,14 +35,17 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
 
 
-def one(phantom: str, n: int, method: str) -> dict:
-    """Simulate (seeded) and reconstruct one case in this process."""
+def one(phantom: str, n: int, method: str, options: dict) -> dict:
+    """Simulate (seeded) and reconstruct one case in this process; ``options`` (strings,
+    TrainConfig fields) go to r2 and gr only."""
     import mi_grg
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     geo = default_geometry(n=n, det=int(1.5 * n), views=25)
     case = simulate_case(phantom, geo, default_test_angles(25), NoiseModel(), seed=0)
     opts = {} if method == "fdk" else {"progress": False}
+    if method in ("r2", "gr"):
+        opts.update(options)
     t0 = time.perf_counter()
     _, m = mi_grg.reconstruct(case, method, **opts)
     out = {"phantom": phantom, "n": n, "method": method, "seconds": time.perf_counter() - t0,
@@ -45,6 +53,8 @@ def one(phantom: str, n: int, method: str) -> dict:
            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
            "variant": m["machine"]["variant"], "code": m["machine"].get("mi_grg"),
            "date": time.strftime("%Y-%m-%d")}
+    if method in ("r2", "gr") and options:
+        out["options"] = dict(sorted(options.items()))
     info = m.get("method_info")
     if info:
         out.update({k: info[k] for k in ("iterations_run", "iterations_planned", "stopped_by",
@@ -62,10 +72,18 @@ def main() -> int:
                     help="drop the cells of an existing reconstruct.json instead of keeping them")
     ap.add_argument("--markdown-only", action="store_true",
                     help="rewrite reconstruct.md from reconstruct.json; run nothing")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a training option for r2 and gr (repeatable)")
     ap.add_argument("--one", nargs=3, metavar=("PHANTOM", "N", "METHOD"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    options = {}
+    for kv in args.option:
+        k, sep, v = kv.partition("=")
+        if not sep or not k:
+            ap.error(f"--option {kv!r}: expected KEY=VALUE, e.g. extent=4.5")
+        options[k.strip()] = v.strip()
     if args.one:
-        print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2])))
+        print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2], options)))
         return 0
     out = Path(args.out)
     old = []
@@ -81,7 +99,9 @@ def main() -> int:
     for n in args.sizes:
         for ph in args.phantoms:
             for method in args.methods:
-                r = subprocess.run([sys.executable, __file__, "--one", ph, str(n), method],
+                extra = [f"--option={kv}" for kv in args.option]
+                r = subprocess.run([sys.executable, __file__, "--one", ph, str(n), method]
+                                   + extra,
                                    capture_output=True, text=True, env=dict(os.environ))
                 if r.returncode:
                     print(f"{ph} {n} {method} FAILED:\n{r.stderr[-2000:]}", file=sys.stderr)
@@ -100,7 +120,14 @@ def main() -> int:
 
 
 def key(r: dict) -> tuple:
-    return (r["phantom"], r["n"], r["method"])
+    return (r["phantom"], r["n"], label(r))
+
+
+def label(r: dict) -> str:
+    """The method, with its options if any ("gr (extent=4.5)")."""
+    opts = r.get("options") or {}
+    return r["method"] + (f" ({', '.join(f'{k}={v}' for k, v in opts.items())})"
+                          if opts else "")
 
 
 def write(out: Path, old: list, rows: list) -> None:
@@ -129,7 +156,7 @@ def to_markdown(rows: list, machine: dict) -> str:
     for r in rows:
         its = (f"{r['iterations_run']}/{r['iterations_planned']}" if "iterations_run" in r
                else "")
-        lines.append(f"| {r['phantom']} | {r['n']}^3 | {r['method']} | {r['psnr_3d']:.2f} | "
+        lines.append(f"| {r['phantom']} | {r['n']}^3 | {label(r)} | {r['psnr_3d']:.2f} | "
                      f"{r['ssim_3d']:.3f} | {r['seconds']:.1f} | {r['peak_rss_gb']:.2f} | "
                      f"{its} | {r.get('n_gaussians', '')} | {r.get('date') or '—'} | "
                      f"{r.get('code') or '—'} |")
@@ -138,7 +165,8 @@ def to_markdown(rows: list, machine: dict) -> str:
               "|---|---|---|---|---|"]
     cases = sorted({(r["phantom"], r["n"]) for r in rows})
     for ph, n in cases:
-        by = {r["method"]: r for r in rows if (r["phantom"], r["n"]) == (ph, n)}
+        by = {r["method"]: r for r in rows
+              if (r["phantom"], r["n"]) == (ph, n) and not r.get("options")}
         classical = [by[m]["psnr_3d"] for m in ("fdk", "sart", "asd-pocs") if m in by]
         if "gr" in by and classical:
             gr, r2 = by["gr"], by.get("r2")

@@ -63,7 +63,8 @@ def test_outputs_log_and_plot(tiny_case, tmp_path):
     # products), and they differ from the raw densities by that multiplier
     from mi_grg.core.voxelizer import voxelize
     vol = np.load(tmp_path / "vol_pred.npy")
-    again = voxelize(g, tiny_case.geometry)
+    assert m["method_info"]["extent"] == 3.5             # TRAIN_EXTENT, recorded
+    again = voxelize(g, tiny_case.geometry, extent=m["method_info"]["extent"])
     np.testing.assert_allclose(again, vol, rtol=1e-5, atol=1e-6 * float(np.abs(vol).max()))
     from mi_grg.training.checkpoint import _RAW_TYPES, _raw_from_numpy
     with np.load(tmp_path / "checkpoint.npz") as ck:     # the returned state's raw values
@@ -160,15 +161,15 @@ def test_gaussian_cap_follows_the_voxel_count():
         make_config("gr", max_gaussians_per_voxel=-0.5)
 
 
-def test_iteration_rule_is_linear_from_64_and_a_square_root_below(tiny_case):
+def test_iteration_rule_is_a_square_root_of_the_edge(tiny_case):
     from mi_grg.training.trainer import iteration_rule
-    its = {n: iteration_rule(default_geometry(n=n, det=n, views=2)) for n in (8, 48, 64, 128)}
-    assert its == {8: 530, 48: 1299, 64: 1500, 128: 3000}
+    its = {n: iteration_rule(default_geometry(n=n, det=n, views=2)) for n in (4, 48, 64, 128)}
+    assert its == {4: 750, 48: 2598, 64: 3000, 128: 4243}
     # the largest edge counts: a 64 x 64 x 256 slab plans like 256^3
     slab = dataclasses.replace(default_geometry(n=64, det=96, views=2), nVoxel=(64, 64, 256))
     assert iteration_rule(slab) == 6000
     t = Trainer(tiny_case, make_config("gr", **TINY), progress=False)
-    assert t.iterations == iteration_rule(t.case.geometry) == 750    # 16^3: config 0 = rule
+    assert t.iterations == iteration_rule(t.case.geometry) == 1500   # 16^3: config 0 = rule
 
 
 def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):

@@ -660,7 +660,9 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     geo = geo.replace(nDetector=(det, max(1, round(det * nu / nv))))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scan = Scan(geometry=geo, object={"type": "gaussian_medium",
+    # the truncation extent the run trained with (4.5 before runs recorded it)
+    extent = float((metrics.get("method_info") or {}).get("extent", DEFAULT_EXTENT))
+    scan = Scan(geometry=geo, object={"type": "gaussian_medium", "extent": extent,
                                       "filename": os.path.relpath(npz.resolve(), out.resolve())},
                 integrator={"type": "volpath"},
                 other=[{"type": "constant", "radiance": 1.0}])

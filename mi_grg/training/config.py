@@ -58,7 +58,8 @@ class TrainConfig:
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
                                    # adds sum in thread order, so volumes of two runs differ
                                    # slightly (docs/benchmarks.md)
-    extent: float | None = None    # Gaussian support in std devs; None: projector default
+    extent: float | None = None    # Gaussian support in std devs; None: trainer.TRAIN_EXTENT
+                                   # (3.5; 4.5 before 2026-11-27, the projector's default)
     # --- De-Init (Sec. 3.3.1)
     n_points: int = 50000          # M, capped by the number of candidate voxels
     init_tau: float = 0.001        # threshold, fraction of the denoised volume's max
@@ -333,7 +334,26 @@ def stale_keys(m: dict) -> list:
         differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
     if "stop_noise" in differ and _margin_inert(m, used, now):
         differ.discard("stop_noise")
-    return sorted(differ) + split
+    return sorted(differ | _auto_changed(m, used)) + split
+
+
+#: What the automatic extent and iteration count resolved to before 2026-11-27 (runs
+#: made then do not record it): the projector's 4.5 and 1500 x n / 64 (sqrt below 64).
+_OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
+
+
+def _auto_changed(m: dict, used: dict) -> set:
+    """Automatic fields (None in the run's config) that this code resolves differently
+    from what the run recorded in method_info (``extent``, ``iteration_rule``)."""
+    from mi_grg.training.trainer import ITERATION_RULE, TRAIN_EXTENT
+    info = m.get("method_info") or {}
+    out = set()
+    if used.get("extent") is None and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT:
+        out.add("extent")
+    if (used.get("iterations") is None and used.get("time_budget") is None
+            and info.get("iteration_rule", _OLD_AUTO["iteration_rule"]) != ITERATION_RULE):
+        out.add("iterations")
+    return out
 
 
 def _margin_inert(m: dict, used: dict, now: dict) -> bool:

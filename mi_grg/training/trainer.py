@@ -52,24 +52,37 @@ def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
     return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
 
 
+#: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
+#: projector, the logged 3-D PSNR and the output volume use it. 3.5 instead of the
+#: projector's 4.5 costs 0.82x the training time for -0.03 dB over shepp, needles and
+#: shells at 64^3 (gr; docs/benchmarks.md, "Training step"): its truncation error (~3e-4
+#: in line-integral units) is 7 % of the noise of 25 views at I0 1e4.
+TRAIN_EXTENT = 3.5
+
+#: Iterations at 64^3 (``iteration_rule``): what the 5-minute target on 2 CPU cores buys
+#: at extent 3.5 (docs/benchmarks.md, "Training step" and "Reconstruction").
+ITERATIONS_AT_64 = 3000
+#: The rule as metrics.json records it (``config.stale_keys`` compares).
+ITERATION_RULE = f"{ITERATIONS_AT_64}*sqrt(n/64)"
+
+
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
-    n = max(nVoxel): 1500 x n / 64 from 64^3 up (128^3 -> 3000, 256^3 -> 6000), and
-    1500 x sqrt(n / 64), at least 500, below (48^3 -> 1299, 16^3 -> 750).
+    n = max(nVoxel): 3000 x sqrt(n / 64), at least 500 (48^3 -> 2598, 128^3 -> 4243,
+    256^3 -> 6000).
 
-    Why linear above 64^3: at 128^3 the older square-root rule stopped while the 3-D PSNR
-    was still rising, and 3000 iterations gained more than a dB (docs/benchmarks.md,
-    "Reconstruction"). At 64^3 (1500) the 3-D PSNR is still rising too, but the time
-    target (5 min per case on 2 cores) leaves no room, and fewer iterations cost several
-    dB there (docs/benchmarks.md, "Measurements behind defaults"). Below 64^3 the square
-    root is kept (nothing measured suggests otherwise). The schedule (densification window,
-    evaluation interval) scales with it (``_scaled``).
+    Why: set by the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20
+    min, 256^3 <= 60 min per run), which at every size we measured were the limit, not the
+    model: the 3-D PSNR was still rising at the last iteration (docs/benchmarks.md,
+    "Reconstruction", "Training to a time budget"). An iteration at 128^3 (192^2 views)
+    costs about 2x one at 64^3, at 256^3 (384^2) about 6x, so the square root keeps
+    128^3 near 14 min and 256^3 near 50 min. The schedule (densification window,
+    evaluation interval) scales with it (``_scaled``); ``time_budget`` plans the count to
+    a wall-clock budget instead.
     """
     n = max(geometry.nVoxel)
-    if n >= 64:
-        return int(round(1500 * n / 64))
-    return max(500, int(round(1500 * math.sqrt(n / 64))))
+    return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
 
 
 def gaussian_cap(cfg: TrainConfig, geometry) -> int:
@@ -155,7 +168,7 @@ class Trainer:
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(geo.n_views)]
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
-        self.extent = cfg.extent
+        self.extent = cfg.extent if cfg.extent is not None else TRAIN_EXTENT
         # The TV term is a regulariser on a random block, not a measurement: a shorter
         # support costs a third of the voxel pairs (its field differs from the full one by
         # at most rho exp(-9/2) = 0.011 rho per Gaussian).
@@ -619,7 +632,9 @@ class Trainer:
                                    "margin_db": (self.stopper.margin()
                                                  if math.isfinite(self.stopper.best)
                                                  else None)},
-                   "time_plan": self.time_plan}
+                   "time_plan": self.time_plan,
+                   # what the automatic fields resolved to (config.stale_keys compares)
+                   "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
             from mi_grg.evaluation.plotting import plot_log
