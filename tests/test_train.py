@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.training.config import make_config
+from mi_grg.training.config import TRAIN_EXTENT, make_config
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.noise import NoiseModel
 from mi_grg.core.projector import project
@@ -252,9 +252,11 @@ def test_config_edge_cases_are_errors(tiny_case):
         Trainer(no_gt, make_config("gr", monitor_3d=True, **TINY), progress=False)
 
 
-@pytest.mark.parametrize("tv_extent, extent, want", [(3.0, None, 3.0), (None, 4.0, 4.0)])
+@pytest.mark.parametrize("tv_extent, extent, want", [(3.0, None, 3.0), (None, 4.0, 4.0),
+                                                     (None, None, 3.5)])
 def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent, extent, want):
-    """The TV blocks use ``tv_extent`` (None: ``extent``); the final volume uses ``extent``."""
+    """The TV blocks use ``tv_extent`` (None: ``extent``); the final volume uses ``extent``
+    (None: TRAIN_EXTENT, 3.5)."""
     import mi_grg.core.voxelizer as vox
     seen, real = [], vox.voxelize_dr
 
@@ -266,7 +268,7 @@ def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent,
     cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, tv_every=1,
                       **TINY)
     Trainer(tiny_case, cfg, progress=False).run()
-    assert seen == [want] * 3 + [extent]
+    assert seen == [want] * 3 + [extent if extent is not None else TRAIN_EXTENT]
 
 
 def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):

@@ -7,9 +7,13 @@ import pytest
 import mi_grg
 from mi_grg.data.noise import NoiseModel
 from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
-from mi_grg.training.config import ADDED_LATER, ConfigError, make_config
+from mi_grg.training.config import (ADDED_LATER, ITERATION_RULE, TRAIN_EXTENT, ConfigError,
+                                    make_config)
 from mi_grg.training.trainer import Trainer
 from mi_grg.training.views import Stop, ViewProtocol, stop_from
+
+# what today's automatic extent and iteration count resolve to, as metrics.json records them
+AUTO = {"extent": TRAIN_EXTENT, "iteration_rule": ITERATION_RULE}
 
 TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=1000,
             holdout_every=3)
@@ -109,10 +113,29 @@ def test_old_runs_read_as_held_out_all_run():
     assert ADDED_LATER["holdout_until"] == 1.0
     cfg = make_config("gr").to_dict()
     del cfg["holdout_until"]
-    assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": cfg}}) == \
+    assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": cfg}}) == \
         ["holdout_until"]
     pinned = {**cfg, "holdout_until": make_config("gr").holdout_until}
-    assert stale_keys({"method": "gr", "options": {}, "method_info": {"config": pinned}}) == []
+    assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": pinned}}) == []
+
+
+def test_runs_under_the_old_extent_or_iteration_rule_are_stale():
+    """A run that left extent / iterations automatic and recorded no resolved values ran at
+    the projector's 4.5 and 1500 x n / 64: stale under today's 3.5 and 3000 x sqrt(n / 64).
+    Set explicitly (or planned to a time_budget), the field is the user's and stays."""
+    from mi_grg.training.config import stale_keys
+    cfg = make_config("gr").to_dict()
+    old = {"method": "gr", "options": {}, "method_info": {"config": cfg}}
+    assert stale_keys(old) == ["extent", "iterations"]
+    assert stale_keys({**old, "method_info": {"config": cfg, **AUTO}}) == []
+    assert stale_keys({**old, "method_info": {"config": cfg, **AUTO, "extent": 4.5}}) == \
+        ["extent"]
+    pinned = make_config("gr", extent=4.5, iterations=1500).to_dict()
+    assert stale_keys({"method": "gr", "options": {"extent": 4.5, "iterations": 1500},
+                       "method_info": {"config": pinned}}) == []
+    budget = make_config("gr", time_budget=300).to_dict()
+    assert stale_keys({"method": "gr", "options": {"time_budget": 300},
+                       "method_info": {"config": budget, "extent": TRAIN_EXTENT}}) == []
 
 
 def test_the_window_does_not_make_runs_without_held_out_views_stale():
@@ -122,7 +145,7 @@ def test_the_window_does_not_make_runs_without_held_out_views_stale():
     for every, want in ((0, []), (8, ["holdout_catch_up", "holdout_until"])):
         cfg = {**make_config("gr", holdout_every=every).to_dict(), "holdout_until": 0.75,
                "holdout_catch_up": True}
-        m = {"method": "gr", "options": {"holdout_every": every}, "method_info": {"config": cfg}}
+        m = {"method": "gr", "options": {"holdout_every": every}, "method_info": {**AUTO, "config": cfg}}
         assert stale_keys(m) == want
 
 
@@ -136,7 +159,7 @@ def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
     def run(stop, returned, used=None):
         c = cfg if used is None else {**cfg, "stop_noise": used}
         return {"method": "gr", "options": {}, "n_train_views": 25,
-                "method_info": {"config": c, "iterations_run": 1500,
+                "method_info": {**AUTO, "config": c, "iterations_run": 1500,
                                 "views": {"stop": stop, "returned_state_iteration": returned}}}
     assert stale_keys(run(None, 1500)) == []
     assert stale_keys(run({"iteration": 1125, "kept_iteration": 875}, 1417)) == ["stop_noise"]
@@ -150,7 +173,7 @@ def test_runs_with_the_old_split_are_stale():
     from mi_grg.training.config import stale_keys
     cfg = make_config("gr").to_dict()
     gr = {"method": "gr", "options": {}, "n_train_views": 25,
-          "method_info": {"config": cfg, "held_out_views": [0, 8, 16, 24]}}
+          "method_info": {**AUTO, "config": cfg, "held_out_views": [0, 8, 16, 24]}}
     assert stale_keys(gr) == ["held_out_views"]
     gr["method_info"]["held_out_views"] = [3, 9, 15, 21]
     assert stale_keys(gr) == []

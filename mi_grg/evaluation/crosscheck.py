@@ -660,7 +660,8 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     geo = geo.replace(nDetector=(det, max(1, round(det * nu / nv))))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    # the truncation extent the run trained with (4.5 before runs recorded it)
+    # the truncation extent the run trained with (the projector's 4.5 before runs recorded it)
+    from mi_grg.core.projector import DEFAULT_EXTENT
     extent = float((metrics.get("method_info") or {}).get("extent", DEFAULT_EXTENT))
     scan = Scan(geometry=geo, object={"type": "gaussian_medium", "extent": extent,
                                       "filename": os.path.relpath(npz.resolve(), out.resolve())},

@@ -43,6 +43,20 @@ PRESETS = {
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
                "holdout_catch_up": False, "stop_noise": 0.0}
 
+#: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
+#: projector, the logged 3-D PSNR and the output volume use it. 3.5 instead of the
+#: projector's 4.5 costs 0.82x the training time for -0.03 dB over shepp, needles and
+#: shells at 64^3 (gr; docs/benchmarks.md, "Training step"): its truncation error (~3e-4
+#: in line-integral units) is 7 % of the noise of 25 views at I0 1e4.
+TRAIN_EXTENT = 3.5
+
+#: Iterations at 64^3 (``trainer.iteration_rule``): what the 5-minute target on 2 CPU cores buys
+#: at extent 3.5 (docs/benchmarks.md, "Training step" and "Reconstruction").
+ITERATIONS_AT_64 = 3000
+#: The rule as metrics.json records it (``stale_keys`` compares).
+ITERATION_RULE = f"{ITERATIONS_AT_64}*sqrt(n/64)"
+
+
 #: Options of the held-out window (mi_grg.training.views): without held-out views
 #: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
 WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
@@ -345,7 +359,6 @@ _OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
 def _auto_changed(m: dict, used: dict) -> set:
     """Automatic fields (None in the run's config) that this code resolves differently
     from what the run recorded in method_info (``extent``, ``iteration_rule``)."""
-    from mi_grg.training.trainer import ITERATION_RULE, TRAIN_EXTENT
     info = m.get("method_info") or {}
     out = set()
     if used.get("extent") is None and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT:

@@ -36,7 +36,8 @@ from mi_grg.data.case import Case
 from mi_grg.training.budget import replans_done, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
-from mi_grg.training.config import TrainConfig, make_config
+from mi_grg.training.config import (ITERATION_RULE, ITERATIONS_AT_64, TRAIN_EXTENT, TrainConfig,
+                                    make_config)
 from mi_grg.training.densify import densify_iterations
 from mi_grg.training.early_stop import EarlyStopper
 from mi_grg.training.views import ViewProtocol, stop_from
@@ -50,20 +51,6 @@ def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
     """The Laplacian term's weight at N Gaussians, lambda_lap x REFERENCE_N / N, as an
     opaque scalar: as a literal it changed with every densification and made new kernels."""
     return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
-
-
-#: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
-#: projector, the logged 3-D PSNR and the output volume use it. 3.5 instead of the
-#: projector's 4.5 costs 0.82x the training time for -0.03 dB over shepp, needles and
-#: shells at 64^3 (gr; docs/benchmarks.md, "Training step"): its truncation error (~3e-4
-#: in line-integral units) is 7 % of the noise of 25 views at I0 1e4.
-TRAIN_EXTENT = 3.5
-
-#: Iterations at 64^3 (``iteration_rule``): what the 5-minute target on 2 CPU cores buys
-#: at extent 3.5 (docs/benchmarks.md, "Training step" and "Reconstruction").
-ITERATIONS_AT_64 = 3000
-#: The rule as metrics.json records it (``config.stale_keys`` compares).
-ITERATION_RULE = f"{ITERATIONS_AT_64}*sqrt(n/64)"
 
 
 def iteration_rule(geometry) -> int:
