@@ -93,7 +93,8 @@ def main() -> int:
         if not old:
             print(f"--markdown-only: no cells in {out / 'reconstruct.json'}", file=sys.stderr)
             return 2
-        write(out, old, [])
+        write(out, old, [], machine=json.loads((out / "reconstruct.json").read_text())
+              .get("machine"))
         return 0
     rows = []
     for n in args.sizes:
@@ -130,14 +131,16 @@ def label(r: dict) -> str:
                           if opts else "")
 
 
-def write(out: Path, old: list, rows: list) -> None:
-    """reconstruct.json and .md: the cells measured now, plus the old cells not re-measured."""
+def write(out: Path, old: list, rows: list, machine: dict | None = None) -> None:
+    """reconstruct.json and .md: the cells measured now, plus the old cells not re-measured
+    (``machine``: the one recorded, for a rewrite; default: this one)."""
     new = {key(r) for r in rows}
     order = {m: i for i, m in enumerate(METHODS)}
     rows = sorted([r for r in old if key(r) not in new] + rows,
                   key=lambda r: (r["n"], r["phantom"], order.get(r["method"], 99)))
     out.mkdir(parents=True, exist_ok=True)
-    machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    machine = machine or {"cpu": platform.processor() or platform.machine(),
+                          "cores": os.cpu_count()}
     tmp = out / "reconstruct.json.tmp"
     tmp.write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
     tmp.replace(out / "reconstruct.json")

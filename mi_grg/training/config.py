@@ -50,8 +50,9 @@ ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget"
 #: in line-integral units) is 7 % of the noise of 25 views at I0 1e4.
 TRAIN_EXTENT = 3.5
 
-#: Iterations at 64^3 (``trainer.iteration_rule``): what the 5-minute target on 2 CPU cores buys
-#: at extent 3.5 (docs/benchmarks.md, "Training step" and "Reconstruction").
+#: Iterations at 64^3 (``trainer.iteration_rule``): about what the 5-minute target buys on
+#: the 2-core machine of the earlier timings at extent 3.5 (docs/benchmarks.md, "The
+#: iteration rule re-derived"; a machine 1.9x slower takes 8.3 min).
 ITERATIONS_AT_64 = 3000
 #: The rule as metrics.json records it (``stale_keys`` compares).
 ITERATION_RULE = f"{ITERATIONS_AT_64}*sqrt(n/64)"
@@ -72,7 +73,7 @@ class TrainConfig:
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
                                    # adds sum in thread order, so volumes of two runs differ
                                    # slightly (docs/benchmarks.md)
-    extent: float | None = None    # Gaussian support in std devs; None: trainer.TRAIN_EXTENT
+    extent: float | None = None    # Gaussian support in std devs; None: TRAIN_EXTENT
                                    # (3.5; 4.5 before 2026-11-27, the projector's default)
     # --- De-Init (Sec. 3.3.1)
     n_points: int = 50000          # M, capped by the number of candidate voxels
@@ -361,7 +362,8 @@ def _auto_changed(m: dict, used: dict) -> set:
     from what the run recorded in method_info (``extent``, ``iteration_rule``)."""
     info = m.get("method_info") or {}
     out = set()
-    if used.get("extent") is None and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT:
+    if (used.get("extent") is None
+            and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT):
         out.add("extent")
     if (used.get("iterations") is None and used.get("time_budget") is None
             and info.get("iteration_rule", _OLD_AUTO["iteration_rule"]) != ITERATION_RULE):

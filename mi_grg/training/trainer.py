@@ -59,14 +59,16 @@ def iteration_rule(geometry) -> int:
     n = max(nVoxel): 3000 x sqrt(n / 64), at least 500 (48^3 -> 2598, 128^3 -> 4243,
     256^3 -> 6000).
 
-    Why: set by the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20
-    min, 256^3 <= 60 min per run), which at every size we measured were the limit, not the
-    model: the 3-D PSNR was still rising at the last iteration (docs/benchmarks.md,
-    "Reconstruction", "Training to a time budget"). An iteration at 128^3 (192^2 views)
-    costs about 2x one at 64^3, at 256^3 (384^2) about 6x, so the square root keeps
-    128^3 near 14 min and 256^3 near 50 min. The schedule (densification window,
-    evaluation interval) scales with it (``_scaled``); ``time_budget`` plans the count to
-    a wall-clock budget instead.
+    Why: the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20 min,
+    256^3 <= 60 min per run) were the limit, not the model: on shepp and shells the 3-D
+    PSNR was still rising at the last iteration, and this rule gains 0.6-1.9 dB there over
+    1500 x n / 64 (sparse needles lose up to 0.9 dB: their 3-D PSNR peaks early, and no
+    projection-domain measure shows it; docs/benchmarks.md, "The iteration rule
+    re-derived"). An iteration at 128^3 (192^2 views) costs about 1.5-2x one at 64^3, at
+    256^3 (384^2) about 6x, hence the square root (shells 128^3: 16.8 min on a machine
+    where shepp 64^3 takes 8.3 min, 1.9x slower than the one that gave ~4.3). The schedule
+    (densification window, evaluation interval) scales with the count (``_scaled``);
+    ``time_budget`` plans the count to a wall-clock budget instead.
     """
     n = max(geometry.nVoxel)
     return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
