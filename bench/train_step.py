@@ -122,6 +122,14 @@ def _load_state(method: str, n: int):
     return raw, np.asarray(f["train"])
 
 
+
+def _train_extent():
+    try:
+        from mi_grg.training.config import TRAIN_EXTENT
+    except ImportError:
+        return None
+    return TRAIN_EXTENT
+
 class _Step:
     """One training iteration, as Trainer.run composes it (see the module docstring)."""
 
@@ -149,7 +157,9 @@ class _Step:
             if cfg.use_graph_field:
                 self.ds = graph_density_scale(self.graph)
                 dr.eval(self.ds)
-        self.extent = cfg.extent or None
+        # the trainer's default extent where the code has one (TRAIN_EXTENT since 61ad6dd;
+        # before, None: the projector's 4.5)
+        self.extent = cfg.extent or _train_extent()
         self.tv_extent = cfg.tv_extent or self.extent
         self.block = np.minimum(cfg.tv_block, np.asarray(self.geo.nVoxel))
         self.rng = np.random.default_rng(1)
