@@ -130,6 +130,7 @@ def _train_extent():
         return None
     return TRAIN_EXTENT
 
+
 class _Step:
     """One training iteration, as Trainer.run composes it (see the module docstring)."""
 
@@ -145,7 +146,8 @@ class _Step:
         self.raw, train = _load_state(method, n)
         self.geo = default_geometry(n=n, det=int(1.5 * n), views=25)
         self.cfg = cfg = make_config(method, None)
-        self.iterations = 1500 * n // 64
+        from mi_grg.training.trainer import iteration_rule   # the code's own (Adam's decay)
+        self.iterations = iteration_rule(self.geo)
         self.targets = [mi.TensorXf(np.ascontiguousarray(t)) for t in train]
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
         self.densifier = PGADensifier(DensifyConfig.from_train_config(cfg), seed=cfg.seed)
