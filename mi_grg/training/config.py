@@ -323,7 +323,10 @@ def stale_keys(m: dict) -> list:
     (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]; a
     run whose held-out views are not today's ``holdout_split`` (0, 8, 16, ... before f3bf235)
     adds "held_out_views", and such a classical run decided under another ``stop_noise``
-    adds "stop_noise" (its stop margin; gr / r2: ``_margin_inert``)."""
+    adds "stop_noise" (its stop margin; gr / r2: ``_margin_inert``). A gr / r2 run that
+    left ``extent`` or ``iterations`` automatic and resolved them otherwise than this code
+    (``TRAIN_EXTENT``, ``ITERATION_RULE``; runs before 61ad6dd record neither) adds
+    "extent" / "iterations"."""
     if (m.get("method") in ("sart", "asd-pocs", "pdhg")
             and (m.get("options") or {}).get("stop", "heldout") == "heldout"
             and (m.get("method_info") or {}).get("protocol") != "heldout"):
