@@ -122,8 +122,9 @@ def _load_state(method: str, n: int):
     return raw, np.asarray(f["train"])
 
 
-
 def _train_extent():
+    """The trainer's default extent where the code under test has one, else None (the
+    projector's default: the code before 61ad6dd)."""
     try:
         from mi_grg.training.config import TRAIN_EXTENT
     except ImportError:
@@ -159,8 +160,6 @@ class _Step:
             if cfg.use_graph_field:
                 self.ds = graph_density_scale(self.graph)
                 dr.eval(self.ds)
-        # the trainer's default extent where the code has one (TRAIN_EXTENT since 61ad6dd;
-        # before, None: the projector's 4.5)
         self.extent = cfg.extent or _train_extent()
         self.tv_extent = cfg.tv_extent or self.extent
         self.block = np.minimum(cfg.tv_block, np.asarray(self.geo.nVoxel))
