@@ -100,10 +100,30 @@ def test_resume_continues_an_interrupted_run(tiny_case, tmp_path, crash_after):
     assert err < 2e-2, err
 
 
-def test_fixed_seed_gives_the_same_result(tiny_case):
-    vols = [mi_grg.reconstruct(tiny_case, "gr", iterations=15, progress=False, seed=9,
+def _two_runs_of_seed_9(case):
+    return [mi_grg.reconstruct(case, "gr", iterations=15, progress=False, seed=9,
                                **TINY)[0] for _ in range(2)]
-    np.testing.assert_allclose(vols[0], vols[1], atol=1e-4 * max(vols[0].max(), 1e-6))
+
+
+def test_fixed_seed_on_one_thread_gives_the_same_result_bit_for_bit(tiny_case):
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        a, b = _two_runs_of_seed_9(tiny_case)
+    finally:
+        dr.set_thread_count(threads)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_fixed_seed_on_many_threads_differs_only_by_summation_order(tiny_case):
+    """Threads add gradient contributions atomically in a varying order, and Adam divides
+    by the gradient's own size, so a nearly cancelling sum can move one Gaussian a little
+    differently: seen up to 1e-3 of the maximum in one voxel of 4096 (typically 3e-7).
+    A different seed differs by ~0.3 relative L2, so the bounds below still catch a seed
+    that is not passed on."""
+    a, b = _two_runs_of_seed_9(tiny_case)
+    assert np.abs(a - b).max() <= 1e-2 * a.max()
+    assert np.linalg.norm(a - b) <= 1e-3 * np.linalg.norm(a)
 
 
 def test_r2_runs_without_any_graph_component(tiny_case):
