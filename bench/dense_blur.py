@@ -81,6 +81,7 @@ def heldout(name: str, variant: str) -> None:
 
 
 def filtered(name: str, sigma_vox: float) -> None:
+    import mi_grg  # noqa: F401  (before drjit: it picks the variant and LLVM)
     import drjit as dr
     import mi_grg.training.trainer as trainer
     from mi_grg.core.gaussians import Gaussians
