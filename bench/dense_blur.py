@@ -3,11 +3,11 @@
 Two questions about a finished ``bench/dense_volumes.py`` run (its run folder under
 $TMPDIR/dense_volumes/runs/CASE/VARIANT):
 
-1. Could the held-out views choose a blur of the volume? For the kept state (the best
+1. ``heldout CASE VARIANT``: could the held-out views choose a blur of the volume? For the kept state (the best
    held-out state, before the held-out views joined training), the volume blurred by a
    Gaussian of sigma voxels is projected (Joseph) onto the held-out views, and its mean
    squared residual against the measured views is printed beside the 3-D PSNR (oracle).
-2. ``--filtered SIGMA``: train gr with the field convolved by an isotropic Gaussian of
+2. ``filtered CASE SIGMA``: train gr with the field convolved by an isotropic Gaussian of
    SIGMA voxels inside the model (Sigma' = Sigma + s^2 I, densities rescaled to keep each
    kernel's mass; Mip-Splatting's 3-D filter), to see whether a band limit in the model
    removes the noise that a blur of the output removes. Not a training option: the
@@ -54,17 +54,14 @@ def heldout(name: str, variant: str) -> None:
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.voxelizer import voxelize
     from mi_grg.evaluation.metrics import psnr_3d
+    from mi_grg.training.checkpoint import _RAW_TYPES, _raw_from_numpy
     case = _case(name)
     run = _root() / "runs" / name / variant
     info = json.loads((run / "metrics.json").read_text())["method_info"]
     held = info["held_out_views"]
     with np.load(run / "checkpoint.npz") as z:
-        raw = {k[len("kept__"):]: np.asarray(z[k], np.float32) for k in z.files
-               if k.startswith("kept__")}
+        raw = _raw_from_numpy({k: z[f"kept__{k}"] for k in _RAW_TYPES})
         scale = mi.Float(z["kept_density_scale"]) if "kept_density_scale" in z.files else None
-    types = {"positions": mi.Point3f, "raw_scales": mi.Vector3f,
-             "raw_rotations": mi.Vector4f}
-    raw = {k: types[k](*v.T) if k in types else mi.Float(v) for k, v in raw.items()}
     vol = voxelize(Gaussians.from_raw(raw), case.geometry, extent=info["extent"],
                    density_scale=scale)
     final = np.load(run / "vol_pred.npy")
