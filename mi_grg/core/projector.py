@@ -75,6 +75,7 @@ ROWS_PER_BATCH = 1 << 22      # (record, row) lanes launched at once
 PIXELS_PER_CHUNK = 1 << 24    # image floats per chunk (ReduceMode.Expand copies it per thread)
 _BOUND_PAD = 1e-3             # relative/absolute slack of the footprint (pixels)
 _J_MIN = 0.05                 # smallest eigenvalue of the footprint's perspective factor J
+PACKET = 8                    # pixels per packet (LLVM primal pass; see _packets)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
@@ -260,6 +261,11 @@ class _DetectorConstants:
         nv, nu = geometry.nDetector
         self.cone = fr.cone
         self.nu_py, self.nv_py = nu, nv
+        # Internal images store rows ``stride`` floats apart: nu rounded up to a whole
+        # number of packets where the primal pass writes packets (cropped on the way out)
+        stride = -(-nu // PACKET) * PACKET if _packets() else nu
+        self.stride_py = stride
+        self.stride = dr.opaque(mi.Int32, stride)
         self.h = dr.opaque(F, fr.h)
         self.h2 = dr.opaque(F, fr.h * fr.h)
         self.a_u, self.a_v = dr.opaque(F, fr.a_u), dr.opaque(F, fr.a_v)
@@ -270,8 +276,8 @@ class _DetectorConstants:
         self.margin2 = dr.opaque(F, extent * extent + HALF_LINE_MARGIN ** 2)
         self.nu, self.nv = dr.opaque(mi.Int32, nu), dr.opaque(mi.Int32, nv)
         self.nuf, self.nvf = dr.opaque(F, float(nu)), dr.opaque(F, float(nv))
-        self.npix = dr.opaque(mi.UInt32, nu * nv)
-        self.npix_py = nu * nv
+        self.npix = dr.opaque(mi.UInt32, stride * nv)
+        self.npix_py = stride * nv      # floats per view of an internal image
 
 
 class _ViewFrameArrays:
@@ -496,34 +502,99 @@ def _scatter_mode():
     return dr.ReduceMode.Expand if dr.backend_v(mi.Float) == dr.JitBackend.LLVM else dr.ReduceMode.Auto
 
 
-def _row_interval(det, uc, dv, footprint, rec):
-    """Pixel columns [lo, hi] (Int32, clamped) of a footprint row; dv = row centre - vc."""
-    F, I32 = mi.Float, mi.Int32
-    gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
-    y = dv - gather(footprint["cv"])
-    hw = (dr.sqrt(dr.maximum(gather(footprint["hw2"]) * (gather(footprint["S_vv"]) - y * y), 0))
-          * (1 + _BOUND_PAD) + _BOUND_PAD)
-    ucr = uc + gather(footprint["cu"]) + gather(footprint["slope"]) * y
+def _packets() -> bool:
+    """Whether the kernels use packet loads and stores (the LLVM backend).
+
+    On the CPU a per-pixel ``scatter_add`` resolves conflicts between the SIMD lanes one
+    lane at a time; it was ~60 % of the primal pass, and the backward's eleven per-record
+    scatter-adds ~30 % of its kernel. With packets, a lane evaluates its row ``PACKET``
+    pixels at a time and adds them with one contiguous store, the backward adds a lane's
+    sums to its record with one contiguous store, and each lane reads its record with one
+    packet load (docs/benchmarks.md, "Training step"). CUDA keeps the per-pixel atomics,
+    which it executes natively."""
+    return dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+
+
+_FOOTPRINT_KEYS = ("cu", "cv", "slope", "hw2", "S_vv")   # a footprint row's pixel interval
+_RECORD_WIDTH = 16          # floats per packed record (parameters + footprint, padded)
+_EXPAND_BYTES = 1 << 29     # largest per-thread copy for the backward's packet sums
+
+
+def _record_keys(det):
+    return (_REGULAR_PARAMS_CONE if det.cone else _REGULAR_PARAMS_PARALLEL) + _FOOTPRINT_KEYS
+
+
+def _pack_records(det, params, footprint):
+    """The records' parameters and footprint values as one row-major [record, 16] array,
+    which a lane reads with one packet load; None off the LLVM backend (lazy: evaluated
+    with the caller's next ``dr.eval``)."""
+    if not _packets():
+        return None
+    vals = [params[k] for k in _record_keys(det)[:-len(_FOOTPRINT_KEYS)]]
+    vals += [footprint[k] for k in _FOOTPRINT_KEYS]
+    n = dr.width(vals[0])
+    vals += [dr.zeros(mi.Float, n)] * (_RECORD_WIDTH - len(vals))
+    packed = dr.zeros(mi.Float, n * _RECORD_WIDTH)
+    dr.scatter(packed, mi.ArrayXf(vals), dr.arange(mi.UInt32, n))
+    return packed
+
+
+def _row_bounds(det, uc, dv, t):
+    """Pixel columns [lo, hi] (Int32, clamped) of a footprint row; dv = row centre - vc,
+    ``t`` holds the record's footprint values (``_FOOTPRINT_KEYS``)."""
+    I32 = mi.Int32
+    y = dv - t["cv"]
+    hw = (dr.sqrt(dr.maximum(t["hw2"] * (t["S_vv"] - y * y), 0)) * (1 + _BOUND_PAD)
+          + _BOUND_PAD)
+    ucr = uc + t["cu"] + t["slope"] * y
     lo = I32(dr.maximum(dr.ceil(dr.clip(ucr - hw - 0.5, -1.0, det.nuf)), 0.0))
     hi = I32(dr.minimum(dr.floor(dr.clip(ucr + hw - 0.5, -1.0, det.nuf)), det.nuf - 1))
     return lo, hi
 
 
-def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage=None, tan=None):
+def _row_interval(det, uc, dv, footprint, rec):
+    """``_row_bounds`` of lanes ``rec`` (gathers the footprint values)."""
+    return _row_bounds(det, uc, dv, {k: dr.gather(mi.Float, footprint[k], rec)
+                                     for k in _FOOTPRINT_KEYS})
+
+
+def _lane_values(det, params, footprint, packed, rec, row):
+    """Per (record, row) lane: the record's values (dict), the row centre v, dv = v - vc and
+    the row's pixel interval [lo, hi]. One packet load per lane where ``packed`` exists."""
+    keys = _record_keys(det)
+    if packed is not None:
+        pk = dr.gather(mi.ArrayXf, packed, rec, shape=(_RECORD_WIDTH, dr.width(rec)))
+        t = {k: pk[i] for i, k in enumerate(keys)}
+    else:
+        src = {**params, **footprint}
+        t = {k: dr.gather(mi.Float, src[k], rec) for k in keys}
+    v = mi.Float(row) + 0.5
+    dv = v - t["vc"]
+    lo, hi = _row_bounds(det, t["uc"], dv, t)
+    return t, v, dv, lo, hi
+
+
+def _lane_base(vbase, rec):
+    """Flat index of pixel (0, 0) of each lane's view: ``vbase`` is an opaque Int32 when
+    every record is in the same view, else a per-record UInt32 array."""
+    return vbase if isinstance(vbase, mi.Int32) and dr.width(vbase) == 1 \
+        else mi.Int32(dr.gather(mi.UInt32, vbase, rec))
+
+
+def _regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None, tan=None):
     """One lane per (record, detector row); loops over the row's footprint pixels.
 
-    mode ``dr.ADMode.Primal``: scatter-add values into ``image``; ``Backward``: return the
-    gradient of <image, gimage> w.r.t. the 11 (6 parallel) record parameters per lane;
-    ``Forward``: scatter-add the tangent given the parameter tangents ``tan``."""
+    ``prep_arrays`` = (params, footprint, packed) of the records. Mode
+    ``dr.ADMode.Primal``: add the values into ``image`` (rows ``det.stride`` apart; on LLVM
+    ``PACKET`` pixels per store); ``Backward``: return the gradient of <image, gimage>
+    w.r.t. the 11 (6 parallel) record parameters per lane; ``Forward``: scatter-add the
+    tangent given the parameter tangents ``tan``."""
     F, I32 = mi.Float, mi.Int32
     cone = det.cone
-    gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
-    t = {k: gather(params[k]) for k in (_REGULAR_PARAMS_CONE if cone else _REGULAR_PARAMS_PARALLEL)}
+    params, footprint, packed = prep_arrays
+    t, v, dv, lo, hi = _lane_values(det, params, footprint, packed, rec, row)
     uc, vc, N11, N21, N22, amp = t["uc"], t["vc"], t["N11"], t["N21"], t["N22"], t["amp"]
-    v = F(row) + 0.5
-    dv = v - vc
-    lo, hi = _row_interval(det, uc, dv, footprint, rec)
-    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * det.nu
+    pix0 = _lane_base(vbase, rec) + row * det.stride
     c1 = N21 * dv
     y2 = N22 * dv
     y2sq = y2 * y2
@@ -536,11 +607,11 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
         sv_len = det.a_v + v * det.dv
         h2sv2 = det.h2 + sv_len * sv_len
     if mode == dr.ADMode.Forward:
-        tt = {k: gather(tan[k]) for k in t}
+        tt = {k: dr.gather(F, tan[k], rec) for k in
+              (_REGULAR_PARAMS_CONE if cone else _REGULAR_PARAMS_PARALLEL)}
     smode = _scatter_mode()
 
-    def pixel(j):
-        u = F(j) + 0.5
+    def pixel(u):
         du = u - uc
         y1 = dr.fma(N11, du, c1)
         num = dr.fma(y1, y1, y2sq)
@@ -553,14 +624,33 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
             m2 = num * inv_den
             L_rs = dr.sqrt(dr.fma(su_len, su_len, h2sv2) * inv_den)
             base0 = L_rs * dr.exp(-0.5 * dr.minimum(m2, det.E2))
-            return u, du, y1, num, z1, den, inv_den, m2, base0
+            return du, y1, num, z1, den, inv_den, m2, base0
         m2 = num
         base0 = dr.exp(-0.5 * dr.minimum(m2, det.E2))
-        return u, du, y1, num, None, None, None, m2, base0
+        return du, y1, num, None, None, None, m2, base0
+
+    if mode == dr.ADMode.Primal and _packets():
+        # PACKET-aligned blocks of the row; pixels outside [lo, hi] (or the footprint) add 0.
+        # pix0 is a multiple of PACKET (det.stride is), so block = pix0 / PACKET + b.
+        W = PACKET
+        blk0 = mi.UInt32(pix0) // W
+
+        def body(b):
+            j0 = b * W
+            u0 = F(j0) + 0.5
+            vals = []
+            for k in range(W):
+                m2, base0 = pixel(u0 + k)[-2:]
+                act = (m2 <= det.E2) & (j0 + k >= lo) & (j0 + k <= hi)
+                vals.append(dr.select(act, amp * base0, 0.0))
+            dr.scatter_add(image, mi.ArrayXf(vals), blk0 + mi.UInt32(b), mode=dr.ReduceMode.Expand)
+            return (b + 1,)
+        dr.while_loop((lo // W,), lambda b: b <= hi // W, body, labels=("b",), label="rg_primal_packet")
+        return None
 
     if mode == dr.ADMode.Primal:
         def body(j):
-            _, _, _, _, _, _, _, m2, base0 = pixel(j)
+            m2, base0 = pixel(F(j) + 0.5)[-2:]
             dr.scatter_add(image, amp * base0, mi.UInt32(pix0 + j), active=m2 <= det.E2, mode=smode)
             return (j + 1,)
         dr.while_loop((lo,), lambda j: j <= hi, body, labels=("j",), label="rg_primal")
@@ -568,7 +658,7 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
 
     if mode == dr.ADMode.Forward:
         def body(j):
-            u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
+            du, y1, num, z1, den, inv_den, m2, base0 = pixel(F(j) + 0.5)
             val = amp * base0
             # d num and d den from the parameter tangents
             dnum = 2 * y1 * (tt["N11"] * du + tt["N21"] * dv - N11 * tt["uc"] - N21 * tt["vc"]) \
@@ -591,7 +681,7 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
     zero = F(0)
 
     def body(j, Sa, Sy1du, Sy1, SN, Sz1pu, Sz1, SD):
-        u, du, y1, num, z1, den, inv_den, m2, base0 = pixel(j)
+        du, y1, num, z1, den, inv_den, m2, base0 = pixel(F(j) + 0.5)
         act = m2 <= det.E2
         g = dr.gather(F, gimage, mi.UInt32(pix0 + j), active=act)
         gb = g * base0
@@ -627,6 +717,42 @@ def _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage
     return gr
 
 
+class _RecordSums:
+    """Per-record sums of the backward's per-lane gradients, over one or more row batches.
+
+    On LLVM (when the per-thread copies stay below ``_EXPAND_BYTES``) a lane adds its
+    sums with one contiguous packet store into a [record, width] array; otherwise one
+    scatter-add per parameter (reduced within a SIMD packet first)."""
+
+    def __init__(self, keys, n):
+        self.keys, self.n = tuple(keys), n
+        self.width = 1 << max(len(self.keys) - 1, 0).bit_length()
+        self.packed = (_packets() and n * self.width * 4 * dr.thread_count() <= _EXPAND_BYTES)
+        if self.packed:
+            self.acc = dr.zeros(mi.Float, n * self.width)
+        else:
+            self.acc = {k: dr.zeros(mi.Float, n) for k in self.keys}
+
+    def add(self, sums, rec):
+        if self.packed:
+            vals = [sums[k] for k in self.keys]
+            vals += [dr.zeros(mi.Float, dr.width(rec))] * (self.width - len(vals))
+            dr.scatter_add(self.acc, mi.ArrayXf(vals), rec, mode=dr.ReduceMode.Expand)
+        else:
+            for k in self.keys:
+                dr.scatter_add(self.acc[k], sums[k], rec, mode=dr.ReduceMode.Local)
+        dr.eval(self.acc)
+
+    def result(self) -> dict:
+        if not self.packed:
+            return self.acc
+        pk = dr.gather(mi.ArrayXf, self.acc, dr.arange(mi.UInt32, self.n),
+                       shape=(self.width, self.n))
+        out = {k: mi.Float(pk[i]) for i, k in enumerate(self.keys)}
+        dr.eval(out)
+        return out
+
+
 def _phi(x):
     """Standard normal CDF (float32; erf form, exact enough for a multiplicative factor)."""
     return 0.5 * (1.0 + dr.erf(x * (1.0 / math.sqrt(2.0))))
@@ -644,7 +770,7 @@ def _near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=Non
     sv_len = det.a_v + v * det.dv
     h2sv2 = det.h2 + sv_len * sv_len
     kl = [M[l][0] * det.h + M[l][2] * sv_len for l in range(3)]   # row-constant part of M r
-    pix0 = I32(dr.gather(mi.UInt32, vbase, rec)) + row * det.nu
+    pix0 = _lane_base(vbase, rec) + row * det.stride
     smode = _scatter_mode()
     if mode == dr.ADMode.Forward:
         tt = {k: gather(tan[k]) for k in _NEAR_PARAMS}
@@ -828,7 +954,8 @@ class _Prepared:
             if identity:
                 footprint["n_rows"] = dr.select(regular, footprint["n_rows"], 0)
                 self.params, self.footprint = params, footprint
-                dr.eval(params, footprint, near)   # one kernel
+                self.packed = _pack_records(det, params, footprint)
+                dr.eval(params, footprint, near, self.packed)   # one kernel
                 self.reg_ids = None
             else:
                 dr.eval(regular, params, footprint, near)
@@ -837,6 +964,7 @@ class _Prepared:
                 self.params = {k: dr.gather(mi.Float, v, self.reg_ids) for k, v in params.items()}
                 self.footprint = {k: dr.gather(type(v), v, self.reg_ids)
                                   for k, v in footprint.items()}
+                self.packed = _pack_records(det, self.params, self.footprint)
             if det.cone:
                 self.near_ids = dr.compress(near)
             else:
@@ -849,7 +977,8 @@ class _Prepared:
             self.reg_vi = dr.gather(U, vi, self.reg_ids)
             self.near_gi = dr.gather(U, gi, self.near_ids)
             self.near_vi = dr.gather(U, vi, self.near_ids)
-        dr.eval(self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint)
+        dr.eval(self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint, self.packed)
+        self.identity = identity
         if self.reg_gi is not None:
             dr.eval(self.reg_gi)
         self.n_reg = ngc if identity else dr.width(self.reg_ids)
@@ -887,8 +1016,11 @@ class _ProjectionSetup:
         self.geometry, self.views, self.det, self.n, self.nviews = geometry, views, det, n, nviews
 
 
-def _vbase(vi, det, v0=0):
-    """Flat index of pixel (0, 0) of each record's view in an image that starts at view v0."""
+def _vbase(vi, det, v0=0, view=None):
+    """Flat index of pixel (0, 0) of each record's view in an image that starts at view v0;
+    an opaque scalar where all records are in one ``view`` (no per-lane gather)."""
+    if view is not None:
+        return dr.opaque(mi.Int32, (view - v0) * det.npix_py)
     return (vi - v0) * det.npix if v0 else vi * det.npix
 
 
@@ -900,7 +1032,21 @@ class _ProjectOp(dr.CustomOp):
         self.setup = setup
         gauss = _gaussian_arrays(Gaussians(positions, scales, rotations, densities), density_scale)
         _tick("setup")
-        return self._by_chunk(gauss, means2d, dr.ADMode.Primal)
+        return self._strided(self._by_chunk(gauss, means2d, dr.ADMode.Primal), crop=True)
+
+    def _strided(self, image, crop: bool):
+        """[view, v, u] image <-> internal layout (rows ``det.stride`` floats apart)."""
+        det, nviews = self.setup.det, self.setup.nviews
+        if det.stride_py == det.nu_py:
+            return image
+        flat = dr.arange(mi.UInt32, nviews * det.nv_py * det.nu_py)
+        rows = flat // det.nu_py
+        idx = rows * det.stride_py + (flat - rows * det.nu_py)
+        if crop:
+            return dr.gather(mi.Float, image, idx)
+        out = dr.zeros(mi.Float, nviews * det.npix_py)
+        dr.scatter(out, image, idx)
+        return out
 
     def _by_chunk(self, gauss, means2d, mode, tangent_src=None):
         """Primal or tangent image: each chunk scatters into an image of its own views only
@@ -948,33 +1094,30 @@ class _ProjectOp(dr.CustomOp):
         det = self.setup.det
         out = {}
         if prep.n_reg:
-            params, footprint = prep.params, prep.footprint
+            arrays = (prep.params, prep.footprint, prep.packed)
             tan = None
             if mode == dr.ADMode.Forward:
                 tan = tangent_src(prep, "reg")
-            vbase = _vbase(prep.reg_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
+            v0 = 0 if mode == dr.ADMode.Backward else prep.v0
+            vbase = _vbase(prep.reg_vi, det, v0, view=prep.v0 if prep.identity else None)
             if mode == dr.ADMode.Backward:
-                acc = {k: dr.zeros(mi.Float, prep.n_reg) for k in params}
+                sums = _RecordSums(prep.params, prep.n_reg)
             _tick("records", {"records_regular": prep.n_reg})
             for rec, row in prep.row_batches():
                 if _PROFILE is not None:
                     _tick("expand")
                     with dr.suspend_grad():
-                        uc = dr.gather(mi.Float, params["uc"], rec)
-                        vc = dr.gather(mi.Float, params["vc"], rec)
-                        lo, hi = _row_interval(det, uc, mi.Float(row) + 0.5 - vc, footprint, rec)
+                        *_, lo, hi = _lane_values(det, *arrays, rec, row)
                         cnt = dr.sum(mi.Float(dr.maximum(hi - lo + 1, 0)), axis=None)
                         _tick("count", {"pixels_regular": int(cnt[0])})
-                r = _regular_kernel(mode, det, params, footprint, vbase, rec, row, image, gimage, tan)
+                r = _regular_kernel(mode, det, arrays, vbase, rec, row, image, gimage, tan)
                 if mode == dr.ADMode.Backward:
-                    for k, val in r.items():
-                        dr.scatter_add(acc[k], val, rec, mode=dr.ReduceMode.Local)
-                    dr.eval(acc)
+                    sums.add(r, rec)
                 else:
                     dr.eval(image)
                 _tick("kernel_" + mode.name.lower())
             if mode == dr.ADMode.Backward:
-                out["reg"] = acc
+                out["reg"] = sums.result()
         if prep.n_near:
             with dr.suspend_grad():
                 params = self._record_params(gauss, means2d, prep, "near")
@@ -1016,7 +1159,7 @@ class _ProjectOp(dr.CustomOp):
         gimage = self.grad_out()
         if dr.width(gimage) == 0:
             return
-        gimage = mi.Float(gimage)
+        gimage = self._strided(mi.Float(gimage), crop=False)
         dr.eval(gimage)
         leaves = self._leaves()
         pos, sc, rot, den, dsc, md = leaves
@@ -1066,7 +1209,8 @@ class _ProjectOp(dr.CustomOp):
                 dr.eval(tan)
                 return tan
 
-        self.set_grad_out(self._by_chunk(gauss0, self.inputs[5], dr.ADMode.Forward, tangent_src))
+        self.set_grad_out(self._strided(
+            self._by_chunk(gauss0, self.inputs[5], dr.ADMode.Forward, tangent_src), crop=True))
 
     def name(self):
         return "RGProjector"

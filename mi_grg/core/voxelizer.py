@@ -59,8 +59,9 @@ from mi_grg.core.gaussians import Gaussians, inverse_covariance, rotation_matrix
 from mi_grg.core.geometry import Geometry
 # one truncation rule, one set of input checks and one quaternion normalisation for the
 # projector and the voxelizer
-from mi_grg.core.projector import (DEFAULT_EXTENT, first_failure, gaussian_checks,
+from mi_grg.core.projector import (DEFAULT_EXTENT, PACKET, first_failure, gaussian_checks,
                                    segment_lanes, unit_quaternions)
+from mi_grg.core.projector import _EXPAND_BYTES, _packets
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -225,32 +226,67 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
                  max_columns=int(ncol.max()) if ncol.size else 0)
 
 
-def _lane(plan: _Plan, g, ix, p, a, rho) -> dict:
-    """Gaussian g's values and its box's x slice ix (one lane each)."""
+_LANE_WIDTH = 16   # floats per packed Gaussian (see _pack_chunk)
+
+
+def _pack_chunk(plan: _Plan, ids, p, a, rho):
+    """The values a lane reads of each Gaussian of a chunk (row = position in ``ids``):
+    p (3), Sigma^-1 (6), rho, the box's first x and y voxel and its y size, as one
+    row-major [len(ids), 16] array that a lane reads with one packet load (LLVM; see
+    ``projector._packets``); None elsewhere (lanes gather each value)."""
+    if not _packets():
+        return None
+    Float = mi.Float
+    vals = [dr.gather(Float, c, ids) for c in list(p) + list(a) + [rho]]
+    # box indices are < 2^24 voxels: exact in float32
+    vals += [Float(dr.gather(type(x), x, ids)) for x in (plan.lo[0], plan.lo[1], plan.n[1])]
+    n = dr.width(ids)
+    vals += [dr.zeros(Float, n)] * (_LANE_WIDTH - len(vals))
+    packed = dr.zeros(Float, n * _LANE_WIDTH)
+    dr.scatter(packed, mi.ArrayXf(vals), dr.arange(mi.UInt32, n))
+    return packed
+
+
+def _gaussian_values(plan: _Plan, g, slot, p, a, rho, packed) -> dict:
+    """Gaussian g's values (one lane each), from the packed chunk (row ``slot``) or by
+    gathers."""
+    Int32, UInt32, Float = mi.Int32, mi.UInt32, mi.Float
+    if packed is not None:
+        pk = dr.gather(mi.ArrayXf, packed, slot, shape=(_LANE_WIDTH, dr.width(slot)))
+        return {"p": (pk[0], pk[1], pk[2]), "a": tuple(pk[3 + k] for k in range(6)),
+                "rho": pk[9], "lo0": Int32(pk[10]), "lo1": Int32(pk[11]), "ny": UInt32(pk[12])}
+    return {"p": tuple(dr.gather(Float, c, g) for c in p),
+            "a": tuple(dr.gather(Float, c, g) for c in a), "rho": dr.gather(Float, rho, g),
+            "lo0": dr.gather(Int32, plan.lo[0], g), "lo1": dr.gather(Int32, plan.lo[1], g),
+            "ny": dr.gather(UInt32, plan.n[1], g)}
+
+
+def _lane(plan: _Plan, g, ix, v: dict) -> dict:
+    """Gaussian g's values ``v`` and its box's x slice ix (one lane each)."""
     Int32, Float = mi.Int32, mi.Float
-    ax = dr.gather(Int32, plan.lo[0], g) + Int32(ix)
-    px, py, pz = (dr.gather(Float, c, g) for c in p)
-    return {"g": g, "ax": ax, "ay0": dr.gather(Int32, plan.lo[1], g),
-            "ny": dr.gather(mi.UInt32, plan.n[1], g),
+    ax = v["lo0"] + Int32(ix)
+    px, py, pz = v["p"]
+    return {"g": g, "ax": ax, "ay0": v["lo1"], "ny": v["ny"],
             "dx": dr.opaque(Float, plan.x0[0]) + (Float(ax) + 0.5) * dr.opaque(Float, plan.d[0]) - px,
-            "py": py, "pz": pz, "a": tuple(dr.gather(Float, c, g) for c in a),
-            "rho": dr.gather(Float, rho, g)}
+            "py": py, "pz": pz, "a": v["a"], "rho": v["rho"]}
 
 
-def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho) -> dict:
+def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho, packed=None) -> dict:
     """The (Gaussian, x) slices of one chunk, one lane each. Left unevaluated: it fuses
     into the loop kernel."""
     slot, ix = segment_lanes(dr.gather(mi.UInt32, plan.nslice, ids), skip, n_slices)
-    return _lane(plan, dr.gather(mi.UInt32, ids, slot), ix, p, a, rho)
+    g = dr.gather(mi.UInt32, ids, slot)
+    return _lane(plan, g, ix, _gaussian_values(plan, g, slot, p, a, rho, packed))
 
 
-def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho):
+def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho, packed=None):
     """The (Gaussian, x, y) columns of one chunk, one lane each: (lane, column)."""
     UInt32, Float = mi.UInt32, mi.Float
     slot, local = segment_lanes(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
     g = dr.gather(UInt32, ids, slot)
+    v = _gaussian_values(plan, g, slot, p, a, rho, packed)
     # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0)
-    ny = dr.maximum(dr.gather(UInt32, plan.n[1], g), 1)
+    ny = dr.maximum(v["ny"], 1)
     if plan.max_columns < _FLOAT_DIV_MAX:
         # local // ny in float32: SIMD integer division does not exist on x86 (LLVM emits
         # one scalar division per lane). Exact: local < nx ny < 2^22 and (local + 1/2) / ny
@@ -258,7 +294,7 @@ def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho):
         ix = UInt32(dr.floor((Float(local) + 0.5) / Float(ny)))
     else:
         ix = local // ny
-    lane = _lane(plan, g, ix, p, a, rho)
+    lane = _lane(plan, g, ix, v)
     return lane, _column(plan, lane, local - ix * ny)
 
 
@@ -289,7 +325,7 @@ def _column(plan: _Plan, lane: dict, iy) -> dict:
     st = [dr.opaque(Int32, v) for v in plan.start]
     sy = dr.opaque(Int32, plan.size[1])
     sz = dr.opaque(Int32, plan.size[2])
-    return {"count": count,
+    return {"count": count, "z0": az - st[2],
             "base": UInt32(((lane["ax"] - st[0]) * sy + (ay - st[1])) * sz + (az - st[2])),
             "dy": dy, "dz0": x0[2] + (Float(az) + 0.5) * dv[2] - lane["pz"],
             "beta2": 2 * beta, "gamma": gamma}
@@ -324,12 +360,55 @@ def _column_loop(plan: _Plan, lane: dict, state: tuple, step):
     return out[1:]
 
 
+def _use_packets(plan: _Plan) -> bool:
+    """Packet stores along z (LLVM; see ``projector._packets``): the block's z size must be
+    a whole number of packets (then every column starts on a packet boundary) and its
+    per-thread copies must stay small."""
+    n_out = int(np.prod(plan.size))
+    return (_packets() and plan.size[2] % PACKET == 0
+            and n_out * 4 * dr.thread_count() <= _EXPAND_BYTES)
+
+
+def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
+    """Add column c's densities into ``out`` PACKET voxels per store: the packet-aligned
+    blocks of the column's z-range, voxels outside the range (or the ellipsoid) add 0."""
+    Float, Int32, UInt32 = mi.Float, mi.Int32, mi.UInt32
+    W = PACKET
+    dzv = dr.opaque(Float, plan.d[2])
+    ext2 = dr.opaque(Float, plan.ext2)
+    a22 = lane["a"][5]
+    z0, count = c["z0"], Int32(c["count"])
+    z1 = z0 + count - 1
+    blk0 = (c["base"] - UInt32(z0)) // W         # the column's first packet
+    dz_col = c["dz0"] - Float(z0) * dzv           # dz of the block's voxel z = 0
+
+    def body(b):
+        zb = b * W
+        vals = []
+        for k in range(W):
+            dz = dr.fma(Float(zb + k), dzv, dz_col)
+            m2 = c["gamma"] + dz * (c["beta2"] + a22 * dz)
+            inside = (m2 <= ext2) & (zb + k >= z0) & (zb + k <= z1)
+            vals.append(dr.select(inside, r * dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR)), 0.0))
+        dr.scatter_add(out, mi.ArrayXf(vals), blk0 + UInt32(b), mode=dr.ReduceMode.Expand)
+        return (b + 1,)
+
+    # an empty column (count 0) runs no block: its first block index exceeds its last
+    dr.while_loop((z0 // W,), lambda b: (b <= z1 // W) & (count > 0), body,
+                  label="voxelize_column_packet")
+
+
 def _forward(plan: _Plan, p, a, rho):
     Float = mi.Float
     out = dr.zeros(Float, int(np.prod(plan.size)))
+    packets = _use_packets(plan)
     for ids, skip, n_cols in plan.col_chunks:
-        lane, col = _columns(plan, ids, skip, n_cols, p, a, rho)
+        lane, col = _columns(plan, ids, skip, n_cols, p, a, rho, _pack_chunk(plan, ids, p, a, rho))
         r = lane["rho"]
+        if packets:
+            _packet_column(plan, lane, col, out, r)
+            dr.eval(out)
+            continue
 
         def step(c, k, dz, m2, inside):
             val = r * dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR))
@@ -396,7 +475,8 @@ class _VoxelizeOp(dr.CustomOp):
         grho = dr.zeros(Float, n)
         mode = dr.ReduceMode.Local   # neighbouring slices mostly share their Gaussian
         for ids, skip, n_slices in self.plan.slice_chunks:
-            lane = _slices(self.plan, ids, skip, n_slices, self.p, self.a, self.rho)
+            lane = _slices(self.plan, ids, skip, n_slices, self.p, self.a, self.rho,
+                           _pack_chunk(self.plan, ids, self.p, self.a, self.rho))
             g, dx, r = lane["g"], lane["dx"], lane["rho"]
 
             def step(c, k, dz, m2, inside, sp, sa, sr):
