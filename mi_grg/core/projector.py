@@ -75,7 +75,7 @@ ROWS_PER_BATCH = 1 << 22      # (record, row) lanes launched at once
 PIXELS_PER_CHUNK = 1 << 24    # image floats per chunk (ReduceMode.Expand copies it per thread)
 _BOUND_PAD = 1e-3             # relative/absolute slack of the footprint (pixels)
 _J_MIN = 0.05                 # smallest eigenvalue of the footprint's perspective factor J
-PACKET = 8                    # pixels per packet (LLVM primal pass; see _packets)
+PACKET = 4                    # pixels (voxels) per packet store on LLVM (see _packets)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
