@@ -46,7 +46,11 @@ detector rows; each (record, row) is one SIMD lane that loops over the row's exa
 interval, evaluates the closed form and scatter-adds into the [view, v, u] image. The
 backward pass loops over the same pixels, gathers the image gradient and accumulates the
 gradient of the record's 11 parameters in registers (no per-pixel atomics); Dr.Jit AD then
-carries those to the Gaussians. Memory stays bounded by chunking records and rows.
+carries those to the Gaussians. Memory stays bounded by chunking records and rows. On the
+LLVM backend (``_packets``) a lane writes its row ``PACKET`` pixels per contiguous packet
+store, adds its gradient sums to its record with one packet store and reads its record
+with one packet load (a SIMD scatter-add resolves lane conflicts one lane at a time on the
+CPU); internal images then pad their rows to a whole number of packets.
 
 API: ``project_dr`` (differentiable, mi.TensorXf [view, v, u]), ``project`` (NumPy float32
 [view, v, u]), ``DEFAULT_EXTENT``, ``view_frames``. Rotations are normalised internally

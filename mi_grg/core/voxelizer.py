@@ -19,7 +19,10 @@ Method (work proportional to the number of (Gaussian, voxel) pairs, not N x voxe
 3. Each column lane solves m^2(z) = extent^2 for its exact z-range inside the ellipsoid
    (~half of the box's voxels) and loops over those voxels (a symbolic loop, no
    per-voxel gathers): rho exp(-m^2/2), ``dr.scatter_add`` into the voxel. Voxels are
-   contiguous along z ([x, y, z] order), so a lane writes consecutive addresses.
+   contiguous along z ([x, y, z] order), so a lane writes consecutive addresses; on the
+   LLVM backend, when the block's z size is a multiple of ``PACKET``, it writes them
+   ``PACKET`` voxels per packet store, and lanes read their Gaussian's values with one
+   packet load from a packed array of the chunk (``_pack_chunk``).
    The backward pass expands (Gaussian, x) *slices* instead, one lane looping over the
    slice's columns and their voxels, so that the per-lane gradient sums need one atomic
    per slice rather than per column.
