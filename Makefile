@@ -27,6 +27,7 @@ bench: $(STAMP)
 	$(PY) bench/voxelizer.py
 	$(PY) bench/graph.py
 	$(PY) bench/train_step.py
+	$(PY) bench/packets.py
 	$(PY) bench/stop_rule.py
 
 clean:
