@@ -396,7 +396,7 @@ def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
         dr.scatter_add(out, mi.ArrayXf(vals), blk0 + UInt32(b), mode=dr.ReduceMode.Expand)
         return (b + 1,)
 
-    # an empty column (count 0) runs no block: its first block index exceeds its last
+    # count > 0: an empty column (its z-range clipped away) runs no block
     dr.while_loop((z0 // W,), lambda b: (b <= z1 // W) & (count > 0), body,
                   label="voxelize_column_packet")
 
