@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "packets.json").write_text(json.dumps(info, indent=1))
-    lines = [f"# Packets on and off (`bench/packets.py`)", "",
+    lines = ["# Packets on and off (`bench/packets.py`)", "",
              f"{info['date']}, {info['machine']}, {info['variant']}, code `{info['code']}`, "
              f"PACKET = {info['packet']}; gr 64^3 state of bench/train_step.py. Medians over "
              "views / blocks (interleaved configurations); load (1 min) "
