@@ -116,7 +116,7 @@ def test_fixed_seed_on_one_thread_gives_the_same_result_bit_for_bit(tiny_case):
 
 
 def test_fixed_seed_on_many_threads_differs_only_by_summation_order(tiny_case):
-    """Threads add gradient contributions atomically in a varying order, and Adam divides
+    """Threads add gradient contributions in a varying order, and Adam divides
     by the gradient's own size, so a nearly cancelling sum can move one Gaussian a little
     differently: seen up to 2e-4 of the maximum in one voxel of 4096 (typically 3e-7).
     A different seed differs by ~0.3 relative L2, so the bounds below still catch a seed

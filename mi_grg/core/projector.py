@@ -521,26 +521,41 @@ def _packets() -> bool:
 
 _FOOTPRINT_KEYS = ("cu", "cv", "slope", "hw2", "S_vv")   # a footprint row's pixel interval
 _RECORD_WIDTH = 16          # floats per packed record (parameters + footprint, padded)
-_EXPAND_BYTES = 1 << 29     # largest per-thread copy for the backward's packet sums
+_EXPAND_BYTES = 1 << 29     # largest per-thread copy of a packet-store target
+
+
+def expand_fits(n_floats: int) -> bool:
+    """Whether ReduceMode.Expand's per-thread copies of an ``n_floats`` target stay within
+    ``_EXPAND_BYTES`` (the packet stores' condition, with ``_packets()``)."""
+    return n_floats * 4 * dr.thread_count() <= _EXPAND_BYTES
+
+
+def pack_rows(vals: list, width: int):
+    """Per-row values (``len(vals) <= width`` arrays of one width n) as one row-major
+    [n, width] array (lazy), which a lane reads with one packet load
+    (``dr.gather(mi.ArrayXf, packed, row, shape=(width, lanes))``)."""
+    n = dr.width(vals[0])
+    vals = list(vals) + [dr.zeros(mi.Float, n)] * (width - len(vals))
+    packed = dr.zeros(mi.Float, n * width)
+    dr.scatter(packed, mi.ArrayXf(vals), dr.arange(mi.UInt32, n))
+    return packed
+
+
+def _param_keys(det):
+    return _REGULAR_PARAMS_CONE if det.cone else _REGULAR_PARAMS_PARALLEL
 
 
 def _record_keys(det):
-    return (_REGULAR_PARAMS_CONE if det.cone else _REGULAR_PARAMS_PARALLEL) + _FOOTPRINT_KEYS
+    return _param_keys(det) + _FOOTPRINT_KEYS
 
 
 def _pack_records(det, params, footprint):
-    """The records' parameters and footprint values as one row-major [record, 16] array,
-    which a lane reads with one packet load; None off the LLVM backend (lazy: evaluated
-    with the caller's next ``dr.eval``)."""
+    """The records' parameters and footprint values as one [record, 16] array
+    (``pack_rows``); None off the LLVM backend."""
     if not _packets():
         return None
-    vals = [params[k] for k in _record_keys(det)[:-len(_FOOTPRINT_KEYS)]]
-    vals += [footprint[k] for k in _FOOTPRINT_KEYS]
-    n = dr.width(vals[0])
-    vals += [dr.zeros(mi.Float, n)] * (_RECORD_WIDTH - len(vals))
-    packed = dr.zeros(mi.Float, n * _RECORD_WIDTH)
-    dr.scatter(packed, mi.ArrayXf(vals), dr.arange(mi.UInt32, n))
-    return packed
+    return pack_rows([params[k] for k in _param_keys(det)]
+                     + [footprint[k] for k in _FOOTPRINT_KEYS], _RECORD_WIDTH)
 
 
 def _row_bounds(det, uc, dv, t):
@@ -611,8 +626,7 @@ def _regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None,
         sv_len = det.a_v + v * det.dv
         h2sv2 = det.h2 + sv_len * sv_len
     if mode == dr.ADMode.Forward:
-        tt = {k: dr.gather(F, tan[k], rec) for k in
-              (_REGULAR_PARAMS_CONE if cone else _REGULAR_PARAMS_PARALLEL)}
+        tt = {k: dr.gather(F, tan[k], rec) for k in _param_keys(det)}
     smode = _scatter_mode()
 
     def pixel(u):
@@ -731,7 +745,7 @@ class _RecordSums:
     def __init__(self, keys, n):
         self.keys, self.n = tuple(keys), n
         self.width = 1 << max(len(self.keys) - 1, 0).bit_length()
-        self.packed = (_packets() and n * self.width * 4 * dr.thread_count() <= _EXPAND_BYTES)
+        self.packed = _packets() and expand_fits(n * self.width)
         if self.packed:
             self.acc = dr.zeros(mi.Float, n * self.width)
         else:
@@ -982,7 +996,6 @@ class _Prepared:
             self.near_gi = dr.gather(U, gi, self.near_ids)
             self.near_vi = dr.gather(U, vi, self.near_ids)
         dr.eval(self.reg_vi, self.near_gi, self.near_vi, self.params, self.footprint, self.packed)
-        self.identity = identity
         if self.reg_gi is not None:
             dr.eval(self.reg_gi)
         self.n_reg = ngc if identity else dr.width(self.reg_ids)
@@ -1103,7 +1116,8 @@ class _ProjectOp(dr.CustomOp):
             if mode == dr.ADMode.Forward:
                 tan = tangent_src(prep, "reg")
             v0 = 0 if mode == dr.ADMode.Backward else prep.v0
-            vbase = _vbase(prep.reg_vi, det, v0, view=prep.v0 if prep.identity else None)
+            one_view = prep.reg_gi is None          # the records are one view's Gaussians
+            vbase = _vbase(prep.reg_vi, det, v0, view=prep.v0 if one_view else None)
             if mode == dr.ADMode.Backward:
                 sums = _RecordSums(prep.params, prep.n_reg)
             _tick("records", {"records_regular": prep.n_reg})
@@ -1131,19 +1145,17 @@ class _ProjectOp(dr.CustomOp):
             n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
             row_lo = dr.zeros(mi.Int32, prep.n_near)
             if mode == dr.ADMode.Backward:
-                acc = {k: dr.zeros(mi.Float, prep.n_near) for k in params}
+                sums = _RecordSums(params, prep.n_near)
             _tick("records", {"records_near": prep.n_near})
             for rec, row in _expand_rows(n_rows, row_lo, ROWS_PER_BATCH):
                 r = _near_kernel(mode, det, params, vbase, rec, row, image, gimage, tan)
                 if mode == dr.ADMode.Backward:
-                    for k, val in r.items():
-                        dr.scatter_add(acc[k], val, rec, mode=dr.ReduceMode.Local)
-                    dr.eval(acc)
+                    sums.add(r, rec)
                 else:
                     dr.eval(image)
                 _tick("kernel_near_" + mode.name.lower())
             if mode == dr.ADMode.Backward:
-                out["near"] = acc
+                out["near"] = sums.result()
         return out
 
     def _leaves(self):

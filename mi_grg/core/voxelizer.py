@@ -64,7 +64,7 @@ from mi_grg.core.geometry import Geometry
 # projector and the voxelizer
 from mi_grg.core.projector import (DEFAULT_EXTENT, PACKET, first_failure, gaussian_checks,
                                    segment_lanes, unit_quaternions)
-from mi_grg.core.projector import _EXPAND_BYTES, _packets
+from mi_grg.core.projector import _packets, expand_fits, pack_rows
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -243,11 +243,7 @@ def _pack_chunk(plan: _Plan, ids, p, a, rho):
     vals = [dr.gather(Float, c, ids) for c in list(p) + list(a) + [rho]]
     # box indices are < 2^24 voxels: exact in float32
     vals += [Float(dr.gather(type(x), x, ids)) for x in (plan.lo[0], plan.lo[1], plan.n[1])]
-    n = dr.width(ids)
-    vals += [dr.zeros(Float, n)] * (_LANE_WIDTH - len(vals))
-    packed = dr.zeros(Float, n * _LANE_WIDTH)
-    dr.scatter(packed, mi.ArrayXf(vals), dr.arange(mi.UInt32, n))
-    return packed
+    return pack_rows(vals, _LANE_WIDTH)
 
 
 def _gaussian_values(plan: _Plan, g, slot, p, a, rho, packed) -> dict:
@@ -334,6 +330,16 @@ def _column(plan: _Plan, lane: dict, iy) -> dict:
             "beta2": 2 * beta, "gamma": gamma}
 
 
+def _column_m2(c: dict, a22, dz):
+    """m^2 at offset dz along column c: a22 dz^2 + 2 beta dz + gamma."""
+    return c["gamma"] + dz * (c["beta2"] + a22 * dz)
+
+
+def _falloff(m2):
+    """exp(-m^2 / 2), floored before float32 exp underflows."""
+    return dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR))
+
+
 def _voxel_loop(plan: _Plan, lane: dict, c: dict, state: tuple, step):
     """Run ``step(c, k, dz, m2, inside, *state) -> state`` over the voxels k of column c
     (a symbolic loop, no per-voxel gathers)."""
@@ -341,11 +347,11 @@ def _voxel_loop(plan: _Plan, lane: dict, c: dict, state: tuple, step):
     dzv = dr.opaque(Float, plan.d[2])
     ext2 = dr.opaque(Float, plan.ext2)
     a22 = lane["a"][5]
-    count, dz0, beta2, gamma = c["count"], c["dz0"], c["beta2"], c["gamma"]
+    count, dz0 = c["count"], c["dz0"]
 
     def body(k, *st):
         dz = dr.fma(Float(k), dzv, dz0)
-        m2 = gamma + dz * (beta2 + a22 * dz)
+        m2 = _column_m2(c, a22, dz)
         return (k + 1, *step(c, k, dz, m2, m2 <= ext2, *st))
 
     out = dr.while_loop((dr.zeros(mi.UInt32, dr.width(lane["g"])), *state),
@@ -367,9 +373,7 @@ def _use_packets(plan: _Plan) -> bool:
     """Packet stores along z (LLVM; see ``projector._packets``): the block's z size must be
     a whole number of packets (then every column starts on a packet boundary) and its
     per-thread copies must stay small."""
-    n_out = int(np.prod(plan.size))
-    return (_packets() and plan.size[2] % PACKET == 0
-            and n_out * 4 * dr.thread_count() <= _EXPAND_BYTES)
+    return _packets() and plan.size[2] % PACKET == 0 and expand_fits(int(np.prod(plan.size)))
 
 
 def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
@@ -390,9 +394,9 @@ def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
         vals = []
         for k in range(W):
             dz = dr.fma(Float(zb + k), dzv, dz_col)
-            m2 = c["gamma"] + dz * (c["beta2"] + a22 * dz)
+            m2 = _column_m2(c, a22, dz)
             inside = (m2 <= ext2) & (zb + k >= z0) & (zb + k <= z1)
-            vals.append(dr.select(inside, r * dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR)), 0.0))
+            vals.append(dr.select(inside, r * _falloff(m2), 0.0))
         dr.scatter_add(out, mi.ArrayXf(vals), blk0 + UInt32(b), mode=dr.ReduceMode.Expand)
         return (b + 1,)
 
@@ -414,7 +418,7 @@ def _forward(plan: _Plan, p, a, rho):
             continue
 
         def step(c, k, dz, m2, inside):
-            val = r * dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR))
+            val = r * _falloff(m2)
             # Direct: lanes hit distinct addresses, a packet-local reduction only costs
             dr.scatter_add(out, val, c["base"] + k, active=inside, mode=dr.ReduceMode.Direct)
             return ()
@@ -430,7 +434,7 @@ def _terms(lane, c, dz, m2, inside):
     dx, dy = lane["dx"], c["dy"]
     ad = (a00 * dx + a01 * dy + a02 * dz, a01 * dx + a11 * dy + a12 * dz,
           a02 * dx + a12 * dy + a22 * dz)
-    e = dr.select(inside, dr.exp(dr.maximum(-0.5 * m2, _EXP_FLOOR)), 0.0)
+    e = dr.select(inside, _falloff(m2), 0.0)
     return ad, e
 
 
