@@ -10,6 +10,10 @@ the training runs take minutes; the seed is fixed).
     python bench/reconstruct.py --sizes 64 128    # also 128^3 (about an hour more)
     python bench/reconstruct.py --sizes 128 --phantoms shepp --methods gr
     python bench/reconstruct.py --methods gr --option extent=4.5 --option iterations=1500
+    python bench/reconstruct.py --sizes 128 --methods gr --logs out/cells   # keep the runs
+
+``--logs DIR`` keeps each cell's run files (train_log.csv with the 3-D PSNR and held-out
+PSNR at every evaluation, metrics.json, the volume) in DIR/<phantom>_<n>_<method>[_options].
 
 ``--option KEY=VALUE`` goes to r2 and gr (TrainConfig fields, as ``mi-grg reconstruct
 --option``); such cells are kept apart from the default ones (their options are part of
@@ -35,9 +39,10 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
 
 
-def one(phantom: str, n: int, method: str, options: dict) -> dict:
+def one(phantom: str, n: int, method: str, options: dict, logs: str | None = None) -> dict:
     """Simulate (seeded) and reconstruct one case in this process; ``options`` (strings,
-    TrainConfig fields) go to r2 and gr only."""
+    TrainConfig fields) go to r2 and gr only; ``logs``: a folder that keeps the run's files
+    (train_log.csv with the 3-D PSNR at every evaluation, metrics.json) per cell."""
     import mi_grg
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
@@ -46,8 +51,12 @@ def one(phantom: str, n: int, method: str, options: dict) -> dict:
     opts = {} if method == "fdk" else {"progress": False}
     if method in ("r2", "gr"):
         opts.update(options)
+    out_dir = None
+    if logs:
+        tag = "_".join([phantom, str(n), method] + [f"{k}-{v}" for k, v in sorted(options.items())])
+        out_dir = Path(logs) / tag
     t0 = time.perf_counter()
-    _, m = mi_grg.reconstruct(case, method, **opts)
+    _, m = mi_grg.reconstruct(case, method, out_dir=out_dir, **opts)
     out = {"phantom": phantom, "n": n, "method": method, "seconds": time.perf_counter() - t0,
            "psnr_3d": m["psnr_3d"], "ssim_3d": m["ssim_3d"],
            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
@@ -74,6 +83,8 @@ def main() -> int:
                     help="rewrite reconstruct.md from reconstruct.json; run nothing")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a training option for r2 and gr (repeatable)")
+    ap.add_argument("--logs", metavar="DIR",
+                    help="keep each cell's run files (train_log.csv, metrics.json) under DIR")
     ap.add_argument("--one", nargs=3, metavar=("PHANTOM", "N", "METHOD"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     options = {}
@@ -83,7 +94,7 @@ def main() -> int:
             ap.error(f"--option {kv!r}: expected KEY=VALUE, e.g. extent=4.5")
         options[k.strip()] = v.strip()
     if args.one:
-        print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2], options)))
+        print(json.dumps(one(args.one[0], int(args.one[1]), args.one[2], options, args.logs)))
         return 0
     out = Path(args.out)
     old = []
@@ -101,6 +112,8 @@ def main() -> int:
         for ph in args.phantoms:
             for method in args.methods:
                 extra = [f"--option={kv}" for kv in args.option]
+                if args.logs:
+                    extra.append(f"--logs={args.logs}")
                 r = subprocess.run([sys.executable, __file__, "--one", ph, str(n), method]
                                    + extra,
                                    capture_output=True, text=True, env=dict(os.environ))

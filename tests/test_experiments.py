@@ -196,6 +196,34 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
 
 
+def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
+    """A gr run that left ``iterations`` automatic is stale where the rule it recorded gives
+    another count than today's at its size, not wherever the rule's name differs."""
+    from mi_grg.training.config import ITERATION_RULE, ITERATION_RULES, make_config, stale_keys
+    from mi_grg.training.trainer import iteration_rule
+    from mi_grg.data.simulate import default_geometry
+
+    def run(n, rule):
+        info = {"config": make_config("gr").to_dict(), "extent": 3.5}
+        if rule is not None:
+            info["iteration_rule"] = rule
+        return {"method": "gr", "options": {}, "nVoxel": [n, n, n], "method_info": info}
+
+    for n in (32, 64, 128, 256):
+        now = iteration_rule(default_geometry(n=n, det=n, views=2))
+        for name, rule in list(ITERATION_RULES.items()) + [(None, ITERATION_RULES["1500*n/64"])]:
+            want = [] if rule(n) == now else ["iterations"]
+            assert stale_keys(run(n, name)) == want, (n, name)
+    assert stale_keys(run(64, "3000*sqrt(n/64)")) == []          # the same 3000
+    assert stale_keys(run(128, "3000*sqrt(n/64)")) == ["iterations"]   # 4243, now 6000
+    assert stale_keys(run(128, "a rule this code does not know")) == ["iterations"]
+    no_size = run(64, "3000*sqrt(n/64)")          # no size recorded: the rule's name decides
+    del no_size["nVoxel"]
+    assert stale_keys(no_size) == ["iterations"]
+    no_size["method_info"]["iteration_rule"] = ITERATION_RULE
+    assert stale_keys(no_size) == []
+
+
 def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
     from mi_grg.training.config import stale_keys
     assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before

@@ -181,10 +181,11 @@ def test_gaussian_cap_follows_the_voxel_count():
         make_config("gr", max_gaussians_per_voxel=-0.5)
 
 
-def test_iteration_rule_is_a_square_root_of_the_edge(tiny_case):
+def test_iteration_rule_is_a_square_root_to_64_then_linear_to_twice(tiny_case):
     from mi_grg.training.trainer import iteration_rule
-    its = {n: iteration_rule(default_geometry(n=n, det=n, views=2)) for n in (4, 48, 64, 128)}
-    assert its == {4: 750, 48: 2598, 64: 3000, 128: 4243}
+    its = {n: iteration_rule(default_geometry(n=n, det=n, views=2))
+           for n in (4, 48, 64, 96, 128, 256)}
+    assert its == {4: 750, 48: 2598, 64: 3000, 96: 4500, 128: 6000, 256: 6000}
     # the largest edge counts: a 64 x 64 x 256 slab plans like 256^3
     slab = dataclasses.replace(default_geometry(n=64, det=96, views=2), nVoxel=(64, 64, 256))
     assert iteration_rule(slab) == 6000

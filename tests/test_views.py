@@ -121,7 +121,7 @@ def test_old_runs_read_as_held_out_all_run():
 
 def test_runs_under_the_old_extent_or_iteration_rule_are_stale():
     """A run that left extent / iterations automatic and recorded no resolved values ran at
-    the projector's 4.5 and 1500 x n / 64: stale under today's 3.5 and 3000 x sqrt(n / 64).
+    the projector's 4.5 and 1500 x n / 64: stale under today's 3.5 and iteration rule.
     Set explicitly (or planned to a time_budget), the field is the user's and stays."""
     from mi_grg.training.config import stale_keys
     cfg = make_config("gr").to_dict()

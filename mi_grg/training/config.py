@@ -51,11 +51,38 @@ ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget"
 TRAIN_EXTENT = 3.5
 
 #: Iterations at 64^3 (``trainer.iteration_rule``): about what the 5-minute target buys on
-#: the 2-core machine of the earlier timings at extent 3.5 (docs/benchmarks.md, "The
-#: iteration rule re-derived"; a machine 1.9x slower takes 8.3 min).
+#: this project's 2-core CPU at extent 3.5 (docs/benchmarks.md, "The iteration rule
+#: re-derived").
 ITERATIONS_AT_64 = 3000
-#: The rule as metrics.json records it (``stale_keys`` compares).
-ITERATION_RULE = f"{ITERATIONS_AT_64}*sqrt(n/64)"
+
+
+def _rule_sqrt(n: int) -> int:
+    return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
+
+
+def _rule_linear_to_2x(n: int) -> int:
+    if n <= 64:
+        return _rule_sqrt(n)
+    return int(round(ITERATIONS_AT_64 * min(n / 64, 2.0)))
+
+
+def _rule_1500(n: int) -> int:
+    if n >= 64:
+        return int(round(1500 * n / 64))
+    return max(500, int(round(1500 * math.sqrt(n / 64))))
+
+
+#: The automatic iteration rules by the name metrics.json records
+#: (``method_info.iteration_rule``): n = max(nVoxel) -> iterations. ``stale_keys`` compares
+#: the count a run's recorded rule gave with today's, so that a rule change marks only the
+#: sizes whose count it changed.
+ITERATION_RULES = {
+    "1500*n/64": _rule_1500,                    # before 61ad6dd (not recorded then)
+    "3000*sqrt(n/64)": _rule_sqrt,              # 61ad6dd .. ac2cfbe
+    "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above": _rule_linear_to_2x,
+}
+#: Today's rule, as metrics.json records it.
+ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
 
 
 #: Options of the held-out window (mi_grg.training.views): without held-out views
@@ -368,9 +395,15 @@ def _auto_changed(m: dict, used: dict) -> set:
     if (used.get("extent") is None
             and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT):
         out.add("extent")
-    if (used.get("iterations") is None and used.get("time_budget") is None
-            and info.get("iteration_rule", _OLD_AUTO["iteration_rule"]) != ITERATION_RULE):
-        out.add("iterations")
+    if used.get("iterations") is None and used.get("time_budget") is None:
+        name = info.get("iteration_rule", _OLD_AUTO["iteration_rule"])
+        rule, nvox = ITERATION_RULES.get(name), m.get("nVoxel")
+        if nvox and rule is not None:     # the count at the run's size decides
+            changed = rule(max(nvox)) != ITERATION_RULES[ITERATION_RULE](max(nvox))
+        else:                             # no size recorded: the rule itself
+            changed = name != ITERATION_RULE
+        if changed:
+            out.add("iterations")
     return out
 
 

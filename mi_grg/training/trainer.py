@@ -36,7 +36,7 @@ from mi_grg.data.case import Case
 from mi_grg.training.budget import replans_done, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
-from mi_grg.training.config import (ITERATION_RULE, ITERATIONS_AT_64, TRAIN_EXTENT, TrainConfig,
+from mi_grg.training.config import (ITERATION_RULE, ITERATION_RULES, TRAIN_EXTENT, TrainConfig,
                                     make_config)
 from mi_grg.training.densify import densify_iterations
 from mi_grg.training.early_stop import EarlyStopper
@@ -56,22 +56,21 @@ def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
-    n = max(nVoxel): 3000 x sqrt(n / 64), at least 500 (48^3 -> 2598, 128^3 -> 4243,
-    256^3 -> 6000).
+    n = max(nVoxel): 3000 x sqrt(n / 64), at least 500, up to 64^3 (48^3 -> 2598); above,
+    3000 x n / 64 up to twice that (96^3 -> 4500, 128^3 and up -> 6000).
 
     Why: the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20 min,
-    256^3 <= 60 min per run) were the limit, not the model: on shepp and shells the 3-D
-    PSNR was still rising at the last iteration, and this rule gains 0.6-1.9 dB there over
-    1500 x n / 64 (sparse needles lose up to 0.9 dB: their 3-D PSNR peaks early, and no
-    projection-domain measure shows it; docs/benchmarks.md, "The iteration rule
-    re-derived"). An iteration at 128^3 (192^2 views) costs about 1.5-2x one at 64^3, at
-    256^3 (384^2) about 6x, hence the square root (shells 128^3: 16.8 min on a machine
-    where shepp 64^3 takes 8.3 min, 1.9x slower than the one that gave ~4.3). The schedule
-    (densification window, evaluation interval) scales with the count (``_scaled``);
-    ``time_budget`` plans the count to a wall-clock budget instead.
+    256^3 <= 60 min per run) are the limit, not the model. At 64^3 3000 iterations take
+    about the 5 minutes (shepp gr 309 s with the packet kernels). At 128^3 a run of 6000
+    takes 8-15 min (the six cells of docs/benchmarks.md, "The rule at 128^3"): shells and
+    shepp were still rising and gain +0.4 to +2.0 dB over 4243 (3000 x sqrt(2)); the sparse
+    needles peak early and lose (gr -0.4, r2 -1.5 dB), and no projection-domain measure
+    we found tells them apart; mean +0.56 dB. 256^3 keeps the 6000 it had (0.57 s per
+    iteration there before the packet kernels, 5x one at 64^3). The schedule (densification
+    window, evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans
+    the count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
     """
-    n = max(geometry.nVoxel)
-    return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
+    return ITERATION_RULES[ITERATION_RULE](max(geometry.nVoxel))
 
 
 def gaussian_cap(cfg: TrainConfig, geometry) -> int:
