@@ -343,9 +343,43 @@ def test_laplacian_vs_dense_matrix(variant, small_graph, rng):
         e[i] = 1e-2
         fd = (f(rho + e) - f(rho - e)) / 2e-2
         assert fd == pytest.approx(grad[i], rel=2e-2, abs=1e-3)
+    # forward mode: d raw = <4 L rho, t>
+    t = rng.normal(size=n)
+    r = mi.Float(rho.astype(np.float32))
+    dr.enable_grad(r)
+    dr.set_grad(r, mi.Float(t.astype(np.float32)))
+    out = G.laplacian_loss(g, r, normalise=False)
+    dr.forward_to(out)
+    assert float(dr.grad(out)[0]) == pytest.approx(float(grad @ t), rel=1e-4, abs=1e-6)
     # constant densities are not penalised
     assert float(G.laplacian_loss(g, mi.Float(np.full(n, 0.7, np.float32)))[0]) == \
         pytest.approx(0, abs=1e-9)
+
+
+def test_neighbour_table_holds_each_nodes_mutual_neighbours(variant, small_graph, rng):
+    """Row m of node i: its m-th neighbour and w_ij; unused entries i itself at weight 0.
+    Also for a hand-made graph whose degree exceeds k (the table is as wide as needed)."""
+    P, _ = small_graph
+    star = G.Graph(src=mi.UInt32([0, 0, 0, 0, 0, 1]), dst=mi.UInt32([1, 2, 3, 4, 5, 2]),
+                   weights=mi.Float([0.5, 0.25, 0.125, 1.0, 2.0, 4.0]), k=2, s=1.0, n=7)
+    for g in (G.build_graph(P, k=4), star):
+        n = g.n
+        W, _ = dense(g, n)
+        D, nbr, w = G.neighbour_table(g)
+        nbr = np.asarray(nbr).reshape(D, n)
+        w = np.asarray(w).reshape(D, n)
+        assert D == int((W > 0).sum(1).max())
+        for i in range(n):
+            got = {int(j): float(x) for j, x in zip(nbr[:, i], w[:, i]) if x != 0}
+            want = {j: float(W[i, j]) for j in np.nonzero(W[i])[0]}
+            assert got == pytest.approx(want) and len(got) == len(want)
+            assert all(nbr[m, i] == i for m in range(D) if w[m, i] == 0)
+        rho = rng.random(n)
+        L = np.diag(W.sum(1)) - W
+        r = mi.Float(rho.astype(np.float32))
+        dr.enable_grad(r)
+        dr.backward(G.laplacian_loss(g, r, normalise=False))
+        np.testing.assert_allclose(np.asarray(dr.grad(r)), 4 * L @ rho, rtol=1e-4, atol=1e-6)
 
 
 def test_mean_abs_density_difference_vs_dense(variant, small_graph, rng):

@@ -22,7 +22,7 @@ Units: positions in scene units, squared distances and s in scene units squared.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -102,6 +102,8 @@ class Graph:
     k: int
     s: float
     n: int
+    #: (D, nbr, w): ``neighbour_table``'s rows, built on first use
+    table: object = field(default=None, repr=False, compare=False)
 
     @property
     def num_edges(self) -> int:
@@ -198,6 +200,66 @@ def graph_density_scale(graph: Graph):
     return 1.0 + _to_both_ends(graph, w, w)
 
 
+def neighbour_table(graph: Graph):
+    """Every node's mutual neighbours as D rows of N (D = the largest degree, <= k for
+    ``build_graph``'s graphs): (D, nbr mi.UInt32 [D*N], w mi.Float [D*N]), entry m*N + i
+    the m-th neighbour of i and its weight; unused entries hold i itself at weight 0.
+    Per-node sums then need gathers only: a scatter-add over the edges, which the LLVM
+    backend resolves lane by lane, cost 3 ms per training iteration in the Laplacian's
+    gradient at 64^3 (294k edges). Built once per graph (cached on it)."""
+    if graph.table is None:
+        n, UInt32 = graph.n, mi.UInt32
+        count = dr.zeros(UInt32, n)
+        D, nbr, w = 0, dr.zeros(UInt32, 0), dr.zeros(mi.Float, 0)
+        if graph.num_edges:
+            # slot of each edge in both of its ends' rows (order within a row is free)
+            slot_src = dr.scatter_inc(count, graph.src)
+            dr.eval(slot_src)
+            slot_dst = dr.scatter_inc(count, graph.dst)
+            dr.eval(slot_dst, count)
+            D = int(dr.max(count)[0])
+            nn = dr.opaque(UInt32, n)            # N changes per rebuild: not a literal
+            nbr = dr.arange(UInt32, D * n) % nn
+            w = dr.zeros(mi.Float, D * n)
+            for node, other, slot in ((graph.src, graph.dst, slot_src),
+                                      (graph.dst, graph.src, slot_dst)):
+                dr.scatter(nbr, other, slot * nn + node)
+                dr.scatter(w, graph.weights, slot * nn + node)
+            dr.eval(nbr, w)
+        graph.table = (D, nbr, w)
+    return graph.table
+
+
+class _LaplacianOp(dr.CustomOp):
+    """raw = sum_i sum_{j in N(i)} w_ij (rho_i - rho_j)^2 and its derivative
+    4 sum_{j in N(i)} w_ij (rho_i - rho_j), per node from ``neighbour_table`` (no scatter)."""
+
+    def eval(self, rho, graph):
+        self.rho, self.graph = rho, graph
+        diff = (dr.gather(mi.Float, rho, graph.src) - dr.gather(mi.Float, rho, graph.dst))
+        return 2 * dr.sum(graph.weights * diff * diff)
+
+    def _gradient(self):
+        D, nbr, w = neighbour_table(self.graph)
+        i = dr.arange(mi.UInt32, self.graph.n)
+        nn = dr.opaque(mi.UInt32, self.graph.n)
+        acc = dr.zeros(mi.Float, self.graph.n)
+        for m in range(D):
+            e = m * nn + i
+            acc += dr.gather(mi.Float, w, e) * (self.rho - dr.gather(
+                mi.Float, self.rho, dr.gather(mi.UInt32, nbr, e)))
+        return 4 * acc
+
+    def backward(self):
+        self.set_grad_in("rho", self._gradient() * self.grad_out())
+
+    def forward(self):
+        self.set_grad_out(dr.sum(self._gradient() * self.grad_in("rho")))
+
+    def name(self):
+        return "laplacian"
+
+
 def laplacian_loss(graph: Graph, densities, normalise: bool = True):
     """Graph Laplacian regulariser (paper Eq. 17), differentiable in densities.
 
@@ -214,16 +276,11 @@ def laplacian_loss(graph: Graph, densities, normalise: bool = True):
         # zero, but still attached to rho so that dr.backward(loss) works (opaque: a literal
         # 0 would be simplified away together with the AD edge)
         return dr.sum(rho * dr.opaque(mi.Float, 0.0))
-    w = graph.weights
-    # Local: the gathers' adjoint scatter-adds then carry no N literal (the LLVM default
-    # Expand's per-thread copies made a new kernel after every densification)
-    loc = dr.ReduceMode.Local
-    diff = (dr.gather(mi.Float, rho, graph.src, mode=loc)
-            - dr.gather(mi.Float, rho, graph.dst, mode=loc))
-    raw = 2 * dr.sum(w * diff * diff)
+    neighbour_table(graph)   # before dr.custom, which hands the op a copy of the graph
+    raw = dr.custom(_LaplacianOp, rho, graph)
     if not normalise:
         return raw
-    return raw / dr.maximum(2 * dr.sum(w), 1e-30)
+    return raw / dr.maximum(2 * dr.sum(graph.weights), 1e-30)
 
 
 def mean_abs_density_difference(graph: Graph, densities):
