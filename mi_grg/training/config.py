@@ -72,17 +72,16 @@ def _rule_1500(n: int) -> int:
     return max(500, int(round(1500 * math.sqrt(n / 64))))
 
 
-#: The automatic iteration rules by the name metrics.json records
-#: (``method_info.iteration_rule``): n = max(nVoxel) -> iterations. ``stale_keys`` compares
-#: the count a run's recorded rule gave with today's, so that a rule change marks only the
-#: sizes whose count it changed.
+#: Today's rule, as metrics.json records it (``method_info.iteration_rule``).
+ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
+#: The automatic iteration rules by their recorded name: n = max(nVoxel) -> iterations.
+#: ``stale_keys`` compares the count a run's recorded rule gave with today's, so that a
+#: rule change marks only the sizes whose count it changed.
 ITERATION_RULES = {
     "1500*n/64": _rule_1500,                    # before 61ad6dd (not recorded then)
     "3000*sqrt(n/64)": _rule_sqrt,              # 61ad6dd .. ac2cfbe
-    "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above": _rule_linear_to_2x,
+    ITERATION_RULE: _rule_linear_to_2x,
 }
-#: Today's rule, as metrics.json records it.
-ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
 
 
 #: Options of the held-out window (mi_grg.training.views): without held-out views
