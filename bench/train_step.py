@@ -189,6 +189,11 @@ class _Step:
 
             def laplacian_weight(lam, n):
                 return lam * (REFERENCE_N / max(n, 1))
+        try:
+            from mi_grg.training.trainer import evaluate_gradients
+        except ImportError:   # before 2026-11-27: each gradient evaluated where first read
+            def evaluate_gradients(*_):
+                pass
         cfg, geo = self.cfg, self.geo
         tick = tick or (lambda name, *a: None)
         nv, nu = geo.nDetector
@@ -243,6 +248,7 @@ class _Step:
             for t in terms[1:]:
                 total = total + t
             dr.backward(total)
+            evaluate_gradients(raw, dr.grad(means2d), dr.detach(total))
         grad2d = dr.grad(means2d)
         gnorm = dr.norm(mi.Vector2f(grad2d.x * (nu / 2.0), grad2d.y * (nv / 2.0)))
         if self.densifier.size not in (None, n):

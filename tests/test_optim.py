@@ -182,6 +182,26 @@ def test_errors(variant, rng):
                      grads={"raw_densities": mi.Float([float("nan")])})
 
 
+def test_a_rejected_step_leaves_every_group_unchanged(variant, rng):
+    """The checks (finite gradients, widths) run for every group before any update, so an
+    error in the last group does not leave the first groups one step ahead."""
+    opt = Adam(check_finite=True)
+    params = _run_steps(rng, opt, 2)
+    before = {k: (to_np(st.m), to_np(st.v), st.step) for k, st in opt.state.items()}
+    g = {k: to_dr(k, rng.normal(size=(N, c)).astype(np.float32)) for k, c in COLS.items()}
+    bad = np.ones((N, 4), np.float32)
+    bad[2, 1] = np.inf
+    with pytest.raises(AdamError, match="raw_rotations.*NaN or Inf"):
+        opt.step(params, grads={**g, "raw_rotations": to_dr("raw_rotations", bad)})
+    short = {**params, "raw_rotations": to_dr("raw_rotations", np.ones((N - 1, 4), np.float32))}
+    with pytest.raises(AdamError, match="raw_rotations.*rows"):
+        opt.step(short, grads={**g, "raw_rotations": short["raw_rotations"]})
+    for k, (m, v, t) in before.items():
+        assert opt.state[k].step == t, k
+        np.testing.assert_array_equal(to_np(opt.state[k].m), m)
+        np.testing.assert_array_equal(to_np(opt.state[k].v), v)
+
+
 def test_state_dict_roundtrip(variant, rng):
     opt = Adam()
     params = _run_steps(rng, opt, 2)

@@ -176,7 +176,7 @@ class Adam:
         if unknown:
             raise AdamError(f"unknown parameter group(s) {unknown}; known: {sorted(self.lr0)}")
         b1, b2 = self.betas
-        out = {}
+        gs = {}
         for name, p in params.items():
             if grads is not None:
                 if name not in grads:
@@ -193,16 +193,30 @@ class Adam:
             n = dr.width(p)
             if dr.width(g) != n:
                 raise AdamError(f"gradient of {name!r} has width {dr.width(g)}, parameter {n}")
-            if self.check_finite and not bool(dr.all(dr.isfinite(g), axis=None)):
-                raise AdamError(f"gradient of {name!r} contains NaN or Inf")
             st = self.state.get(name)
-            if st is None:
-                st = GroupState(m=dr.zeros(type(p), n), v=dr.zeros(type(p), n))
-                self.state[name] = st
-            elif dr.width(st.m) != n:
+            if st is not None and dr.width(st.m) != n:
                 raise AdamError(
                     f"group {name!r}: parameter has {n} rows but the Adam state has "
                     f"{dr.width(st.m)}; apply the same remap/gather/extend to the optimiser")
+            gs[name] = g
+        # Every group's gradient in one kernel: evaluated group by group, each would re-run
+        # the derivative chain the groups share (the projector's record parameters).
+        dr.eval(*gs.values())
+        if self.check_finite:
+            finite = {name: dr.all(dr.isfinite(g), axis=None) for name, g in gs.items()}
+            dr.eval(*finite.values())
+            for name, ok in finite.items():
+                if not bool(ok):
+                    raise AdamError(f"gradient of {name!r} contains NaN or Inf")
+        # Checked above for every group first: an error leaves the whole state unchanged.
+        out, moments = {}, []
+        for name, p in params.items():
+            g = gs[name]
+            st = self.state.get(name)
+            if st is None:
+                n = dr.width(p)
+                st = GroupState(m=dr.zeros(type(p), n), v=dr.zeros(type(p), n))
+                self.state[name] = st
             st.step += 1
             t = st.step
             lr = self.lr(name, t if iteration is None else iteration)
@@ -215,10 +229,11 @@ class Adam:
             step_size = dr.opaque(mi.Float, lr / bc1)
             inv_bc2 = dr.opaque(mi.Float, 1.0 / math.sqrt(bc2))
             denom = dr.sqrt(st.v) * inv_bc2 + self.eps
-            new = type(p)(dr.detach(p) - step_size * st.m / denom)
+            out[name] = type(p)(dr.detach(p) - step_size * st.m / denom)
+            moments += [st.m, st.v]
+        dr.eval(*out.values(), *moments)     # all groups' updates in one kernel
+        for new in out.values():
             dr.enable_grad(new)
-            dr.eval(new, st.m, st.v)
-            out[name] = new
         return out
 
     # ------------------------------------------------------------------ state surgery

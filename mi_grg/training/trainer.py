@@ -53,6 +53,14 @@ def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
     return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
 
 
+def evaluate_gradients(raw: dict, *extra) -> None:
+    """Every raw parameter's gradient (and ``extra`` arrays, such as the means2d gradient)
+    in one kernel, after the backward pass. They share the derivative chain from the
+    projector's record parameters to the raw parameters; read one by one (the
+    densification statistics, then Adam's groups), each read re-ran that chain."""
+    dr.eval(*extra, *(dr.grad(v) for v in raw.values()))
+
+
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
 
@@ -501,6 +509,7 @@ class Trainer:
         # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
         # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
         grad2d = dr.grad(means2d)
+        evaluate_gradients(raw, grad2d, dr.detach(loss))
         gnorm = dr.norm(mi.Vector2f(grad2d.x * (nu / 2.0), grad2d.y * (nv / 2.0)))
         self.densifier.accumulate(gnorm, visible=gnorm > 0)
         loss_value = float(loss[0]) if dr.width(loss) else float(loss)
