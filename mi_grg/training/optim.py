@@ -209,7 +209,7 @@ class Adam:
                 if not bool(ok):
                     raise AdamError(f"gradient of {name!r} contains NaN or Inf")
         # Checked above for every group first: an error leaves the whole state unchanged.
-        out, moments = {}, []
+        out = {}
         for name, p in params.items():
             g = gs[name]
             st = self.state.get(name)
@@ -229,11 +229,11 @@ class Adam:
             step_size = dr.opaque(mi.Float, lr / bc1)
             inv_bc2 = dr.opaque(mi.Float, 1.0 / math.sqrt(bc2))
             denom = dr.sqrt(st.v) * inv_bc2 + self.eps
-            out[name] = type(p)(dr.detach(p) - step_size * st.m / denom)
-            moments += [st.m, st.v]
-        dr.eval(*out.values(), *moments)     # all groups' updates in one kernel
-        for new in out.values():
+            new = type(p)(dr.detach(p) - step_size * st.m / denom)
             dr.enable_grad(new)
+            # one kernel per group: one kernel for all groups (42 streams) was 1.3x slower
+            dr.eval(new, st.m, st.v)
+            out[name] = new
         return out
 
     # ------------------------------------------------------------------ state surgery
