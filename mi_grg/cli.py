@@ -138,13 +138,15 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
+    from mi_grg.data.export import parse_formats
     from mi_grg.methods import reconstruct
+    formats = parse_formats(args.format)   # before any work
     options = _parse_options(args.option)
     if args.config:
         options["config"] = args.config
     if args.resume:
         options["resume"] = True
-    vol, metrics = reconstruct(args.data, args.method, args.out, **options)
+    vol, metrics = reconstruct(args.data, args.method, args.out, formats=formats, **options)
     summary = f"{args.method}: {metrics['seconds']:.1f} s"
     if "psnr_3d" in metrics:
         summary += f", PSNR {metrics['psnr_3d']:.2f} dB, SSIM {metrics['ssim_3d']:.3f}"
@@ -316,6 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="method option, repeatable (e.g. --option n_iter=20)")
     r.add_argument("--resume", action="store_true",
                    help="r2 / gr: continue from OUT/checkpoint.npz (same options required)")
+    r.add_argument("--format", action="append", metavar="NAMES",
+                   help="volume files: npy, tiff (ImageJ), nifti (.nii.gz); comma list or "
+                   "repeated (default npy,tiff)")
     r.set_defaults(func=cmd_reconstruct)
 
     q = sub.add_parser("render", help="path-traced cross-check (Mitsuba volpath vs the exact "

@@ -2,6 +2,7 @@
 
 ``reconstruct(case, method, out_dir)`` runs a method on a ``Case`` and writes
     OUT/vol_pred.npy   float32 [x, y, z], same shape, axis order and units as vol_gt.npy
+    OUT/vol_pred.tif   the same as an ImageJ TIFF stack with its voxel size (``formats``)
     OUT/metrics.json   method, options, wall-clock seconds, psnr_3d / ssim_3d (with a
                        ground truth), the scanner geometry, what the data set simulated,
                        what load_case clamped, variant and machine
@@ -111,12 +112,16 @@ def score(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> dict:
             "ssim_3d": float(ssim_3d(pred, gt, data_range))}
 
 
-def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **options):
+def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, formats=None,
+                **options):
     """Run ``method`` on ``case`` (a Case or a data-set directory).
 
     Returns (volume [x, y, z] float32, metrics dict). Writes the contract's files when
-    ``out_dir`` is given.
+    ``out_dir`` is given, the volume in ``formats`` (``mi_grg.data.export``; default npy
+    and tiff).
     """
+    from mi_grg.data.export import parse_formats
+    formats = parse_formats(formats)   # a bad name fails before any work
     if not isinstance(case, Case):
         from mi_grg.data.dataset import load_case
         case = load_case(case)
@@ -166,16 +171,20 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, **opt
         if case.info.get("reference"):   # e.g. a pseudo ground truth (FDK of all views)
             metrics["ground_truth"] = case.info["reference"]
     if out_dir is not None:
-        write_outputs(out_dir, vol, metrics, case.vol_gt)
+        write_outputs(out_dir, vol, metrics, case.vol_gt, formats=formats)
     return vol, metrics
 
 
-def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None) -> Path:
-    """Write vol_pred.npy, metrics.json and slices.png into ``out_dir``."""
+def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None, formats=None) -> Path:
+    """Write vol_pred in ``formats`` (default .npy and an ImageJ .tif, with the voxel size
+    of metrics["geometry"]; ``mi_grg.data.export``), metrics.json and slices.png into
+    ``out_dir``."""
+    from mi_grg.data.export import write_case_volume
     from mi_grg.evaluation.plotting import slice_montage
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    np.save(out / "vol_pred.npy", vol.astype(np.float32))
+    write_case_volume(out, "vol_pred", vol, metrics["geometry"],
+                      (metrics.get("data") or {}).get("units") or {}, formats)
     with open(out / "metrics.json", "w") as f:
         json.dump(metrics, f, indent=2, default=_json_default)
     title = metrics.get("method", "")

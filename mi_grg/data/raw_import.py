@@ -539,6 +539,9 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         shutil.rmtree(tmp)
     try:
         save_case(out_case, tmp)
+        if vol_gt is not None:   # the reference as CT tools open it, in the scan's unit
+            from mi_grg.data.export import write_case_volume
+            write_case_volume(tmp, "vol_gt", vol_gt, case_geo, info["units"], ("tiff", "nifti"))
         if check:
             write_check(tmp / CHECK_PNG, proj_all, vol_geo, vol_gt)
             record["check"] = CHECK_PNG
