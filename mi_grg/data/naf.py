@@ -1,11 +1,13 @@
 """NAF / SAX-NeRF pickles: loaded safely, read as R2-Gaussian's ``readNAFInfo`` reads them.
 
 Pickles can run code when loaded; ``load_naf`` accepts only dicts, lists, tuples, numbers,
-strings and numpy arrays of numbers (``_RestrictedUnpickler``) and refuses anything else.
+strings and numpy arrays of numbers (``_RestrictedUnpickler``: an explicit allow-list of
+numpy's reconstructors, protocols 2 to 5) and refuses anything else.
 """
 from __future__ import annotations
 
 import pickle
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -15,18 +17,40 @@ from mi_grg.data.case import Case
 from mi_grg.data.dataset import DatasetError
 
 
+def _latin1_bytes(text, encoding="utf-8"):
+    """Protocol 2 writes each bytes object as ``_codecs.encode(text, "latin1")``; only that
+    call is accepted (another codec could be anything)."""
+    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
+        raise pickle.UnpicklingError(f"refuses _codecs.encode({type(text).__name__}, "
+                                     f"{encoding!r}); only latin1 text (protocol 2 bytes)")
+    return text.encode("latin1")
+
+
+#: What numpy's pickles call, in numpy 1 (``numpy.core``) and numpy 2 (``numpy._core``)
+#: spelling: array and scalar reconstructors (protocols 2 to 4) and ``_frombuffer``
+#: (protocol 5). None of them runs code of the pickle's choosing.
+_NUMPY_RECONSTRUCTORS = {(f"{pkg}.{module}", name) for pkg in ("numpy.core", "numpy._core")
+                         for module, name in (("multiarray", "_reconstruct"),
+                                              ("multiarray", "scalar"),
+                                              ("numeric", "_frombuffer"))}
+
+
 class _RestrictedUnpickler(pickle.Unpickler):
     """Accepts only what a NAF pickle holds: dicts, lists, tuples, numbers, strings,
-    None and numpy arrays / scalars. Any other class (which could run code) is refused."""
+    None and numpy arrays / scalars, written with any protocol from 2 to 5. Any other
+    callable or class (which could run code) is refused before it is called."""
 
-    ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray",
-               "_reconstruct"), ("numpy", "ndarray"), ("numpy", "dtype"),
-               ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-               ("builtins", "complex")}
+    ALLOWED = _NUMPY_RECONSTRUCTORS | {("numpy", "ndarray"), ("numpy", "dtype"),
+                                       ("builtins", "complex"), ("__builtin__", "complex")}
+    GUARDED = {("_codecs", "encode"): _latin1_bytes}
 
     def find_class(self, module, name):
+        if (module, name) in self.GUARDED:
+            return self.GUARDED[module, name]
         if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
+            with warnings.catch_warnings():   # numpy 2 warns on the numpy.core spelling
+                warnings.simplefilter("ignore", DeprecationWarning)
+                return super().find_class(module, name)
         raise pickle.UnpicklingError(f"refuses the type {module}.{name}")
 
 
