@@ -156,7 +156,14 @@ def cmd_reconstruct(args) -> int:
 
 def cmd_render(args) -> int:
     """Path-traced cross-check of a scene file or of a finished gr / r2 run; exit 1 when a
-    view fails (crosscheck.json and crosscheck.png say where)."""
+    view fails (crosscheck.json and crosscheck.png say where). With --preview: a
+    Mitsuba-rendered 3-D view of a run's volume (mi_grg.evaluation.preview)."""
+    if args.preview:
+        from mi_grg.evaluation.preview import preview_command
+        return preview_command(args)
+    if args.out is None:
+        raise ValueError("--out DIR is required (only --preview writes into the run itself)")
+    args.spp = 256 if args.spp is None else args.spp
     from mi_grg.evaluation import crosscheck as cc
     if (args.scene is None) == (args.run is None):
         raise ValueError("give a scene file (SCENE, e.g. scenes/shepp_cone_volpath.xml) or a "
@@ -205,6 +212,11 @@ def cmd_demo(args) -> int:
                     f"SSIM {m['ssim_3d']:.3f}   -> {out / method}/slices.png")
     print("\n".join(["", f"{args.n}^3 Shepp-Logan, 25 noisy views (3-D PSNR/SSIM vs ground "
                       "truth):"] + rows))
+    from mi_grg.evaluation.preview import write_preview
+    methods = args.methods.split(",")
+    shown = "gr" if "gr" in methods else methods[-1]
+    p = write_preview(out / shown)
+    print(f"3-D preview of {shown} ({p['seconds']:.0f} s): {p['png']}, {p['gif']}")
     return 0
 
 
@@ -335,11 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "proportion, physical size kept)")
     q.add_argument("--data", help="--run: the run's data set, for its test angles (default: "
                    "those metrics.json records)")
-    q.add_argument("--spp", type=int, default=256, help="samples per pixel (default 256)")
+    q.add_argument("--spp", type=int, help="samples per pixel (default 256; --preview 4)")
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--confidence", type=float, default=0.999,
                    help="per-view confidence of pass/fail (default 0.999)")
-    q.add_argument("--out", required=True)
+    q.add_argument("--preview", action="store_true", help="with --run: write preview.png "
+                   "and preview.gif, its volume rendered in 3-D (emission-absorption)")
+    q.add_argument("--out", help="output directory (--preview: default the run's)")
     q.set_defaults(func=cmd_render)
 
     i = sub.add_parser("import", help="real scanner data (TIFF + FIPS text / scene XML, "
