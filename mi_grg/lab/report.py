@@ -941,6 +941,8 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     else:
         md += [_absent("seeds", out), ""]
 
+    from mi_grg.lab.compare import comparison_section
+    md += comparison_section(out, t1, img_dir, rel)
     md += ["## Best and worst cases", ""]
     if t1:
         idx = _index(t1)
