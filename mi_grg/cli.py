@@ -3,9 +3,11 @@ their report, and demo."""
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 
@@ -14,13 +16,18 @@ def _parse_options(items) -> dict:
     out = {}
     for item in items or []:
         if "=" not in item:
-            raise SystemExit(f"--option expects key=value, got {item!r}")
+            raise ValueError(f"--option {item!r}: expected KEY=VALUE (e.g. n_iter=20)")
         key, value = item.split("=", 1)
         try:
             out[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:
             out[key.replace("-", "_")] = value
     return out
+
+
+def _raw_options(items) -> dict:
+    """``key=value`` pairs as given (for messages)."""
+    return {k.replace("-", "_"): v for k, v in (i.split("=", 1) for i in items or [])}
 
 
 #: The data set's copy of the scan it simulated (load it with ``simulate --scene``).
@@ -108,6 +115,7 @@ def cmd_simulate(args) -> int:
     from mi_grg.data.scene import load_scan, scan_to_xml
     from mi_grg.data.simulate import simulate_case
 
+    _check_out(args, [args.scene])
     if args.scene:
         _refuse_scene_conflicts(args)
         # --views / --test-views are overrides that load_scan applies to the scan itself, so
@@ -137,16 +145,57 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _check_out(args, inputs) -> None:
+    """--out writable and apart from the inputs (a run never writes into its data)."""
+    from mi_grg.data.outputs import check_apart, check_writable
+    check_writable(args.out)
+    check_apart(args.out, [p for p in inputs if p is not None])
+
+
+def _check_option_values(method: str, options: dict, raw: dict) -> None:
+    """An option given as text where the method's default is a number or a boolean is an
+    error naming it (rather than a failure deep inside the method)."""
+    import inspect
+
+    from mi_grg.methods import get_method
+    params = inspect.signature(get_method(method)).parameters
+    for key, value in options.items():
+        default = params[key].default if key in params else None
+        if not isinstance(value, str) or default is None or isinstance(default, str):
+            continue
+        kind = "true or false" if isinstance(default, bool) else "a number"
+        raise ValueError(f"--option {key}={raw[key]}: expected {kind} (default {default!r})")
+
+
+def _run_method(args, formats, options, raw) -> tuple:
+    """reconstruct(); a type error with options given as text names those options."""
+    from mi_grg.methods import reconstruct
+    try:
+        return reconstruct(args.data, args.method, args.out, formats=formats, **options)
+    except (TypeError, ValueError) as e:
+        texts = {k: raw[k] for k, v in options.items() if isinstance(v, str) and k in raw}
+        if not texts or any(k in str(e) for k in texts):
+            raise
+        named = {k: v for k, v in texts.items() if repr(v) in str(e)} or texts
+        texts = [f"{k}={v}" for k, v in named.items()]
+        raise ValueError(f"--option {', '.join(texts)}: passed as text, which the method "
+                         f"could not use ({type(e).__name__}: {e}); expected a number, "
+                         "true/false or JSON") from e
+
+
 def cmd_reconstruct(args) -> int:
     from mi_grg.data.export import parse_formats
-    from mi_grg.methods import reconstruct
+    from mi_grg.methods import get_method
     formats = parse_formats(args.format)   # before any work
+    _check_out(args, [args.data, args.config])
     options = _parse_options(args.option)
+    get_method(args.method)
+    _check_option_values(args.method, options, _raw_options(args.option))
     if args.config:
         options["config"] = args.config
     if args.resume:
         options["resume"] = True
-    vol, metrics = reconstruct(args.data, args.method, args.out, formats=formats, **options)
+    vol, metrics = _run_method(args, formats, options, _raw_options(args.option))
     summary = f"{args.method}: {metrics['seconds']:.1f} s"
     if "psnr_3d" in metrics:
         summary += f", PSNR {metrics['psnr_3d']:.2f} dB, SSIM {metrics['ssim_3d']:.3f}"
@@ -173,6 +222,7 @@ def cmd_render(args) -> int:
     if args.scene is not None and run_only:
         raise ValueError(f"{', '.join(run_only)} only apply with --run (a scene file states "
                          "its own views and detector)")
+    _check_out(args, [args.scene, args.run, args.data])
     if args.scene is not None:
         res = cc.render_scene(args.scene, args.spp, args.out, seed=args.seed,
                               confidence=args.confidence)
@@ -281,7 +331,7 @@ def cmd_import(args) -> int:
     opts = {k: getattr(args, k) for k in (
         "flats", "darks", "free_ray", "cor", "bin", "train_views", "test_views", "seed",
         "reference", "nVoxel", "sVoxel", "scene", "angles", "angle_sign", "unit", "check",
-        "overwrite")}
+        "overwrite", "max_memory")}
     rec = import_scan(args.source, args.out, **opts)
     cor = rec.get("cor", {})
     print(f"wrote {args.out}: {len(rec.get('views', {}).get('train', [])) or 'all'} train "
@@ -292,9 +342,47 @@ def cmd_import(args) -> int:
     return 0
 
 
+def add_import_parser(sub) -> None:
+    """The ``import`` sub-command (real scanner data)."""
+    i = sub.add_parser("import", help="real scanner data (TIFF + FIPS text / scene XML, "
+                       "NAF pickle) -> data set; see docs/real_data.md")
+    i.add_argument("source", help="FIPS text file, TIFF folder/glob (with --scene) or "
+                   "NAF .pickle")
+    i.add_argument("--out", required=True)
+    i.add_argument("--flats", help="glob of flat-field TIFFs (averaged)")
+    i.add_argument("--darks", help="glob of dark TIFFs (averaged)")
+    i.add_argument("--free-ray", default="auto", help="I0 columns: auto, none or A:B,C:D")
+    i.add_argument("--cor", help="centre of rotation: auto or offDetector[1] in pixels")
+    i.add_argument("--bin", type=int, default=1, help="sum B x B detector pixels")
+    i.add_argument("--train-views", type=int, help="evenly spaced (default all)")
+    i.add_argument("--test-views", type=int, default=0, help="drawn from the rest")
+    i.add_argument("--seed", type=int, default=0, help="test-view draw")
+    i.add_argument("--reference", choices=("fdk-all", "none"),
+                   help="fdk-all: vol_gt.npy = FDK of all views (pseudo ground truth)")
+    i.add_argument("--nVoxel", type=int, help="voxels across (default min(columns, 256))")
+    i.add_argument("--sVoxel", type=float, help="cube edge (default: largest cylinder "
+                   "every view sees)")
+    i.add_argument("--scene", help="scene XML (ct_scanner) for a plain TIFF stack")
+    i.add_argument("--angles", help="with --scene: angles file, degrees, one per line")
+    i.add_argument("--angle-sign", type=int, default=1, choices=(1, -1))
+    i.add_argument("--unit", help="length unit name recorded (default mm; scene unit)")
+    i.add_argument("--check", action="store_true", help="write OUT/check.png")
+    i.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    i.add_argument("--max-memory", type=float, metavar="GIB", help="refuse an import whose "
+                   "projections and volume need more (default: half of this machine's memory)")
+    i.set_defaults(func=cmd_import)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line (the sub-parsers inherit this class)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mi_grg.data.phantoms import PHANTOMS
-    p = argparse.ArgumentParser(prog="mi-grg", description=__doc__)
+    p = _Parser(prog="mi-grg", description=__doc__)
     p.add_argument("--variant", default=None, choices=("llvm_ad_mono", "cuda_ad_mono"),
                    help="Dr.Jit/Mitsuba variant (default: llvm_ad_mono, or $MI_GRG_VARIANT)")
     sub = p.add_subparsers(dest="command", required=True)
@@ -356,31 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", help="output directory (--preview: default the run's)")
     q.set_defaults(func=cmd_render)
 
-    i = sub.add_parser("import", help="real scanner data (TIFF + FIPS text / scene XML, "
-                       "NAF pickle) -> data set; see docs/real_data.md")
-    i.add_argument("source", help="FIPS text file, TIFF folder/glob (with --scene) or "
-                   "NAF .pickle")
-    i.add_argument("--out", required=True)
-    i.add_argument("--flats", help="glob of flat-field TIFFs (averaged)")
-    i.add_argument("--darks", help="glob of dark TIFFs (averaged)")
-    i.add_argument("--free-ray", default="auto", help="I0 columns: auto, none or A:B,C:D")
-    i.add_argument("--cor", help="centre of rotation: auto or offDetector[1] in pixels")
-    i.add_argument("--bin", type=int, default=1, help="sum B x B detector pixels")
-    i.add_argument("--train-views", type=int, help="evenly spaced (default all)")
-    i.add_argument("--test-views", type=int, default=0, help="drawn from the rest")
-    i.add_argument("--seed", type=int, default=0, help="test-view draw")
-    i.add_argument("--reference", choices=("fdk-all", "none"),
-                   help="fdk-all: vol_gt.npy = FDK of all views (pseudo ground truth)")
-    i.add_argument("--nVoxel", type=int, help="voxels across (default min(columns, 256))")
-    i.add_argument("--sVoxel", type=float, help="cube edge (default: largest cylinder "
-                   "every view sees)")
-    i.add_argument("--scene", help="scene XML (ct_scanner) for a plain TIFF stack")
-    i.add_argument("--angles", help="with --scene: angles file, degrees, one per line")
-    i.add_argument("--angle-sign", type=int, default=1, choices=(1, -1))
-    i.add_argument("--unit", help="length unit name recorded (default mm; scene unit)")
-    i.add_argument("--check", action="store_true", help="write OUT/check.png")
-    i.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    i.set_defaults(func=cmd_import)
+    add_import_parser(sub)     # `import SOURCE --out CASE` (docs/real_data.md)
 
     add_experiment_parser(sub)  # `experiment NAME --suite FILE --out DIR` and `report`
 
@@ -400,10 +464,52 @@ def main(argv=None) -> int:
         mi_grg.set_variant(args.variant)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as e:
-        # Bad input (our errors name the field or file): one line, not a traceback.
-        print(f"mi-grg {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    except SystemExit as e:
+        if not isinstance(e.code, str):
+            raise
+        message = e.code
+    except (ValueError, OSError, EOFError, MemoryError, zipfile.BadZipFile) as e:
+        message = _describe(e)
+    # Bad input (our errors name the field or file): one line, not a traceback.
+    print(f"mi-grg {args.command}: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2
+
+
+_ERRNO_EXPECTED = {errno.ENOTDIR: "expected a directory there, found a file",
+                   errno.EISDIR: "expected a file, found a directory",
+                   errno.EACCES: "expected permission to read or write it",
+                   errno.EPERM: "expected permission to read or write it",
+                   errno.EROFS: "expected a writable file system",
+                   errno.ENOSPC: "expected free disk space",
+                   errno.ENOENT: "expected it to exist",
+                   errno.EEXIST: "expected it not to exist yet"}
+
+
+def _zip_file(e) -> str:
+    """The file that zipfile was reading when it raised ``e`` (np.load of a .npz)."""
+    tb, name = e.__traceback__, None
+    while tb is not None:
+        zf = tb.tb_frame.f_locals.get("self")
+        if isinstance(zf, zipfile.ZipFile) and zf.filename:
+            name = zf.filename
+        tb = tb.tb_next
+    return name or "a .npz file"
+
+
+def _describe(e) -> str:
+    """One line for an exception from bad input: the file or option, and what was
+    expected."""
+    if isinstance(e, zipfile.BadZipFile):
+        return f"{_zip_file(e)}: not a readable .npz archive ({e}; truncated?)"
+    if isinstance(e, MemoryError):
+        return f"out of memory ({e or 'MemoryError'}); use smaller sizes"
+    if isinstance(e, OSError) and e.filename is not None:
+        where = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 else "")
+        why = _ERRNO_EXPECTED.get(e.errno, "")
+        return f"{where}: {e.strerror or e}" + (f"; {why}" if why else "")
+    if isinstance(e, EOFError):
+        return f"a file ended too early ({e or 'EOFError'}; truncated?)"
+    return str(e)
 
 
 if __name__ == "__main__":

@@ -78,6 +78,9 @@ def load_naf(path) -> dict:
         with open(path, "rb") as f:
             data = _RestrictedUnpickler(f).load()
     except pickle.UnpicklingError as e:
+        if "refuses" not in str(e):   # not a refusal: a damaged file
+            raise DatasetError(f"{path}: cannot read as a pickle ({e}); expected a complete "
+                               "NAF pickle") from e
         raise DatasetError(f"{path}: {e} (only dicts, lists, numbers, strings and numpy "
                              "arrays are accepted)") from e
     except Exception as e:

@@ -24,7 +24,6 @@ import json
 import math
 import os
 import re
-import shutil
 import sys
 from pathlib import Path
 
@@ -35,6 +34,8 @@ from mi_grg.data.case import Case
 from mi_grg.data.cor import estimate_cor
 from mi_grg.data.dataset import DatasetError
 from mi_grg.data.naf import NAF_LENGTH_SCALE, load_naf, naf_case
+from mi_grg.data.outputs import (check_apart, check_replaceable, check_writable, clean_stale,
+                                 input_paths, replaced_dir)
 
 IMPORT_JSON = "import.json"
 CHECK_PNG = "check.png"
@@ -169,11 +170,45 @@ def fips_images(txt: Path, n: int) -> list:
     else:
         raise DatasetError(f"{txt.parent}: several numbered TIFF series "
                              f"({', '.join(sorted(groups))}) and none named {txt.stem}_NNNN.tif")
-    paths.sort(key=lambda p: int(re.search(r"_(\d+)\.tiff?$", p.name, re.I).group(1)))
-    if len(paths) != n:
-        raise DatasetError(f"{txt}: NumberImages = {n} but {len(paths)} projection TIFFs "
-                             f"{paths[0].name} ... {paths[-1].name} were found")
-    return paths
+    return check_numbering(paths, n, f"{txt}: NumberImages = {n}")
+
+
+def _number(path: Path):
+    m = re.search(r"(\d+)\.tiff?$", path.name, re.I)
+    return (int(m.group(1)), len(m.group(1))) if m else None
+
+
+def check_numbering(paths: list, n: int, declared: str, first=None) -> list:
+    """``paths`` in view order, checked against the ``n`` views the scan declares: their
+    numbers must run from ``first`` (default: 0 or 1) without a gap, a duplicate or a
+    stray (a count alone would pass a gap plus a stray, and shift every angle after the
+    gap)."""
+    numbers = {}
+    for p in paths:
+        numbers.setdefault(_number(p)[0], []).append(p)
+    dup = [ps for ps in numbers.values() if len(ps) > 1]
+    if dup:
+        raise DatasetError(f"{declared}: {dup[0][0].name} and {dup[0][1].name} are the same "
+                           "projection number; expected one file per view")
+    if first is None:
+        first = 0 if 0 in numbers else 1
+    expected = set(range(first, first + n))
+    missing, stray = sorted(expected - set(numbers)), sorted(set(numbers) - expected)
+    if missing or stray:
+        p0 = paths[0]
+        width = _number(p0)[1]
+        stem = p0.name[:len(p0.name) - len(p0.suffix) - width]
+        name = lambda k: f"{stem}{k:0{width}d}{p0.suffix}"  # noqa: E731
+        listed = lambda ks: ", ".join(ks[:5]) + (" ..." if len(ks) > 5 else "")  # noqa: E731
+        problems = []
+        if missing:
+            problems.append(f"missing {listed([name(k) for k in missing])}")
+        if stray:
+            strays = [numbers[k][0].name for k in stray]
+            problems.append(f"not a view of the scan: {listed(strays)}")
+        raise DatasetError(f"{declared} expects {name(first)} ... {name(first + n - 1)}; "
+                           f"{'; '.join(problems)}")
+    return [numbers[k][0] for k in sorted(numbers)]
 
 
 def tiff_list(source: Path) -> list:
@@ -184,6 +219,8 @@ def tiff_list(source: Path) -> list:
         paths = sorted(Path(p) for p in _glob.glob(str(source)))
     if not paths:
         raise DatasetError(f"{source}: no TIFF projections found")
+    if all(_number(p) for p in paths):   # numbered: in number order (p_9 before p_10)
+        paths.sort(key=lambda p: _number(p)[0])
     return paths
 
 
@@ -210,15 +247,15 @@ def parse_columns(spec: str, nu_raw: int, b: int) -> np.ndarray:
             raise DatasetError(f"--free-ray {spec!r}: expected column ranges A:B,C:D "
                                  "(raw detector columns), 'auto' or 'none'") from None
         if not 0 <= a < c <= nu_raw:
-            raise DatasetError(f"--free-ray {spec!r}: range {a}:{c} outside the detector's "
-                                 f"{nu_raw} columns")
+            raise DatasetError(f"--free-ray {spec!r}: range {a}:{c}; expected A:B with "
+                               f"0 <= A < B <= {nu_raw} (the detector's raw columns)")
         cols.update(range(-(-a // b), c // b))
     if not cols:
         raise DatasetError(f"--free-ray {spec!r}: no whole binned column inside")
     return np.array(sorted(cols))
 
 
-def detect_free_columns(t: np.ndarray) -> np.ndarray:
+def detect_free_columns(t: np.ndarray, paths=None) -> np.ndarray:
     """Border columns the object never shadows, from ``t`` [view, v, u] (counts or
     transmissions, dark subtracted).
 
@@ -226,15 +263,20 @@ def detect_free_columns(t: np.ndarray) -> np.ndarray:
     level (removing the source's drift). Going inwards, a column stays free while its
     level-normalised mean over rows is, in every view, within ``FREE_RAY_SIGMAS`` noise
     standard deviations of the edge level; the last column before the first shadowed one
-    is dropped too (penumbra)."""
+    is dropped too (penumbra). ``paths`` (the views' files) name a view in errors."""
     nu = t.shape[2]
     e = EDGE_COLUMNS
     if nu < 4 * e:
-        raise DatasetError(f"detector has {nu} columns; free-ray detection needs >= {4 * e}")
+        raise DatasetError(f"--free-ray auto: the detector has {nu} columns, needs >= "
+                           f"{4 * e}; give --free-ray A:B,C:D or none")
     c = t.mean(axis=1)                                   # [view, u]
     level = np.concatenate([c[:, :e], c[:, -e:]], 1).mean(1, keepdims=True)
     if np.any(level <= 0):
-        raise DatasetError("free-ray detection: an edge column is dark in some view")
+        k = int(np.flatnonzero(level[:, 0] <= 0)[0])
+        where = paths[k] if paths is not None else f"view {k}"
+        raise DatasetError(f"--free-ray auto: {where}: the edge columns are at or below the "
+                           "dark level (darks brighter than the projections?); expected "
+                           "free rays there, or give --free-ray A:B,C:D or none")
     n = c / level                                        # 1 where free (up to the flat)
     # Noise of one column's mean: the scatter of edge-column ratios across the views.
     ratio = c[:, 0] / c[:, -1]
@@ -250,6 +292,20 @@ def detect_free_columns(t: np.ndarray) -> np.ndarray:
             run.append(u)
         cols += run[:-1] if len(run) < nu else run
     return np.array(sorted(set(cols)))
+
+
+def check_flat_dark(flat, dark, opts=None, floor: float = 0.5) -> np.ndarray:
+    """Pixels whose flat is not above the dark (True). More than 1 % of them, or a median
+    gain at the floor, is an error: the flats and darks are swapped or wrong."""
+    gain = np.asarray(flat, np.float32) - (np.float32(0) if dark is None else dark)
+    bad = gain <= floor
+    if np.count_nonzero(bad) > 0.01 * gain.size or np.median(gain) <= floor:
+        names = (f"--flats {opts['flats']} / --darks {opts['darks']}" if opts
+                 else "flats / darks")
+        raise DatasetError(f"{names}: {np.count_nonzero(bad)} of {gain.size} pixels of the "
+                           "mean flat are not brighter than the mean dark; expected flats "
+                           "above darks (swapped?)")
+    return bad
 
 
 def normalise(raw: np.ndarray, dark=None, flat=None, free_cols=None, floor: float = 0.5
@@ -271,10 +327,7 @@ def normalise(raw: np.ndarray, dark=None, flat=None, free_cols=None, floor: floa
     sig = np.where(low, floor, sig)
     if flat is not None:
         gain = flat - (np.float32(0) if dark is None else dark)
-        bad = gain <= floor
-        if np.count_nonzero(bad) > 0.01 * gain.size or np.median(gain) <= floor:
-            raise DatasetError(f"flats: {np.count_nonzero(bad)} of {gain.size} pixels are "
-                                 "not brighter than the darks (flats darker than darks?)")
+        bad = check_flat_dark(flat, dark, floor=floor)
         rec["flat_pixels_floored"] = int(np.count_nonzero(bad))
         t = sig / np.where(bad, floor, gain)
         if free_cols is not None and len(free_cols):
@@ -337,44 +390,152 @@ def select_views(n: int, n_train, n_test: int, seed: int) -> tuple:
     return train, test
 
 
+# ---------------------------------------------------------------- sizes
+#: Dr.Jit indexes an array with 32-bit integers, and the projector and FDK hold a whole
+#: volume or projection stack in one array.
+MAX_ENTRIES = 2 ** 31
+#: Float32 copies that an import holds at once: of the projection stack (counts, signal,
+#: transmission, line integrals) and of the volume (FDK's accumulator, indices, result).
+PROJECTION_COPIES, VOLUME_COPIES = 4, 4
+#: The tallest default volume, in slices per voxel across; a taller one means that the axis
+#: projects near the detector's edge (a wrong --cor).
+MAX_ASPECT = 4
+
+
+def default_memory_limit() -> float:
+    """Half of this machine's memory, GiB (``--max-memory``'s default)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 31
+    except (ValueError, OSError, AttributeError):
+        return 8.0
+
+
+def check_sizes(n_views: int, det, vox, max_memory: float) -> dict:
+    """The import's largest arrays, checked before any is allocated: each below
+    ``MAX_ENTRIES`` entries, all together below ``max_memory`` GiB. Returns the record."""
+    proj = int(n_views) * int(det[0]) * int(det[1])
+    vol = int(np.prod([int(n) for n in vox]))
+    shape_p = f"{n_views} x {det[0]} x {det[1]}"
+    shape_v = " x ".join(str(int(n)) for n in vox)
+    if proj >= MAX_ENTRIES:
+        raise DatasetError(f"--bin: projections [view, v, u] = {shape_p} are {proj:.3g} "
+                           f"values, above the {MAX_ENTRIES:.3g} one array can hold; raise --bin")
+    if vol >= MAX_ENTRIES:
+        raise DatasetError(f"--nVoxel: the volume {shape_v} has {vol:.3g} voxels, above the "
+                           f"{MAX_ENTRIES:.3g} one array can hold; lower --nVoxel")
+    gib = 4 * (PROJECTION_COPIES * proj + VOLUME_COPIES * vol) / 2 ** 30
+    if gib > max_memory:
+        raise DatasetError(f"--nVoxel / --bin: projections {shape_p} and volume {shape_v} "
+                           f"need about {gib:.3g} GiB, above the limit of {max_memory:.3g} "
+                           "GiB (--max-memory); lower --nVoxel or raise --bin")
+    return {"projections": [int(n_views), int(det[0]), int(det[1])],
+            "volume": [int(n) for n in vox], "memory_gib": round(gib, 4),
+            "memory_limit_gib": round(float(max_memory), 4)}
+
+
+def _n_across(geo: Geometry, n_voxel) -> int:
+    return int(n_voxel) if n_voxel is not None else min(geo.nDetector[1], MAX_DEFAULT_VOXELS)
+
+
+def plan_volume(geo: Geometry, n_voxel, side, cor_label: str) -> dict:
+    """nVoxel / sVoxel of the case (``default_volume``), refusing a default cylinder that
+    is far taller than wide: the axis then projects near the detector's edge."""
+    try:
+        vol = default_volume(geo, _n_across(geo, n_voxel), side)
+    except DatasetError as e:
+        raise DatasetError(f"{cor_label}: {e}; check --cor") from None
+    nx, _, nz = vol["nVoxel"]
+    if side is None and nz > MAX_ASPECT * nx:
+        edge = geo.nDetector[1] / 2 - abs(geo.offDetector[1]) / geo.dDetector[1]
+        raise DatasetError(f"{cor_label}: the axis projects {edge:.1f} pixels from the "
+                           "detector's edge, so the largest cylinder every view sees is "
+                           f"{vol['sVoxel'][0]:.3g} wide and {nz} slices high; check --cor "
+                           "or give --sVoxel")
+    return vol
+
+
 # ---------------------------------------------------------------- the command
-def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
-    """(raw counts [view, v, u] binned, geometry (binned detector, offsets before the
-    centre of rotation), raw [v, u] frame size, length unit)."""
+def _checked_options(source: Path, opts: dict) -> dict:
+    """The import's options, each checked alone (one-line errors naming the option)."""
+    if not source.exists() and not _glob.glob(str(source)):
+        raise DatasetError(f"{source}: not found")
+    for name, key in (("--bin", "bin"), ("--nVoxel", "nVoxel")):
+        value = opts[key]
+        if value is not None and (int(value) != value or value < 1):
+            raise DatasetError(f"{name} {value}: expected an integer >= 1")
+    if opts["sVoxel"] is not None and not (math.isfinite(opts["sVoxel"]) and
+                                           opts["sVoxel"] > 0):
+        raise DatasetError(f"--sVoxel {opts['sVoxel']}: expected a length > 0")
+    if opts["reference"] not in (None, "none", "fdk-all"):
+        raise DatasetError(f"--reference {opts['reference']!r}: expected fdk-all or none")
+    if opts["angle_sign"] not in (1, -1):
+        raise DatasetError(f"--angle-sign {opts['angle_sign']}: expected 1 or -1")
+    if opts["cor"] not in (None, "auto"):
+        try:
+            pixels = float(opts["cor"])
+        except ValueError:
+            pixels = math.nan
+        if not math.isfinite(pixels):
+            raise DatasetError(f"--cor {opts['cor']!r}: expected auto or a number of pixels")
+    if not (opts["max_memory"] > 0):
+        raise DatasetError(f"--max-memory {opts['max_memory']}: expected GiB > 0")
+    return {**opts, "bin": int(opts["bin"])}
+
+
+def _check_out(out: Path, source: Path, opts: dict, overwrite: bool) -> None:
+    """--out must be writable, apart from every input, and replaceable if it exists."""
+    check_writable(out)
+    for note in clean_stale(out, "import"):
+        print(f"note: {note}", file=sys.stderr)
+    inputs = [source, *input_paths(source), *input_paths(opts["flats"]),
+              *input_paths(opts["darks"]), *input_paths(opts["scene"]),
+              *input_paths(opts["angles"])]
+    check_apart(out, inputs)
+    check_replaceable(out, overwrite)
+
+
+def _tiff_source(source: Path, opts: dict, record: dict) -> tuple:
+    """(projection paths in view order, angles (radians, before --angle-sign), the scene's
+    geometry or None, the FIPS keys or None, length unit)."""
     from mi_grg.data.scene import ScanError, load_scan
-    b = opts["bin"]
     if opts.get("scene"):
         try:
             scan = load_scan(opts["scene"])
         except ScanError as e:
             raise DatasetError(str(e)) from e
-        base = scan.geometry
         paths = tiff_list(source)
-        angles = read_angles(opts["angles"]) if opts.get("angles") else base.angles
+        angles = read_angles(opts["angles"]) if opts.get("angles") else scan.geometry.angles
         if len(paths) != angles.size:
             where = (f"--angles {opts['angles']}" if opts.get("angles")
                      else f"{opts['scene']} (angles)")
             raise DatasetError(f"{source}: {len(paths)} TIFFs but {where} has "
-                                 f"{angles.size} angles")
-        unit = opts.get("unit") or "scene unit"
+                               f"{angles.size} angles")
+        if all(_number(p) for p in paths):
+            paths = check_numbering(paths, angles.size, f"{source}: {angles.size} angles",
+                                    first=min(_number(p)[0] for p in paths))
         record["source"] = {"kind": "tiff+scene", "scene": str(opts["scene"]),
                             "not_used": {k: scan.info()[k] for k in
                                          ("test_angles", "noise", "object")}}
-    else:
-        if opts.get("angles"):
-            raise DatasetError("--angles needs --scene (a FIPS text file states its angles)")
-        known, unknown = parse_fips(source)
-        n = int(known["NumberImages"])
-        paths = fips_images(source, n)
-        angles = np.deg2rad(known["AngleFirst"] + np.arange(n) * known["AngleInterval"])
-        record["source"] = {"kind": "fips", "text": str(source), "keys": known,
-                            "unknown_keys": unknown}
-        base = None
-        unit = opts.get("unit") or "mm"
-    first = read_tiff(paths[0])
-    raw = read_stack(paths, b, first.shape)
-    record["source"]["projections"] = [str(paths[0]), str(paths[-1]), len(paths)]
-    nv_raw, nu_raw = first.shape
+        return paths, angles, scan.geometry, None, opts.get("unit") or "scene unit"
+    if opts.get("angles"):
+        raise DatasetError("--angles needs --scene (a FIPS text file states its angles)")
+    known, unknown = parse_fips(source)
+    n = int(known["NumberImages"])
+    paths = fips_images(source, n)
+    angles = np.deg2rad(known["AngleFirst"] + np.arange(n) * known["AngleInterval"])
+    record["source"] = {"kind": "fips", "text": str(source), "keys": known,
+                        "unknown_keys": unknown}
+    return paths, angles, None, known, opts.get("unit") or "mm"
+
+
+def _binned_geometry(paths, angles, base, known, opts: dict) -> tuple:
+    """(geometry with the binned detector and offsets before the centre of rotation,
+    raw [v, u] frame size), from the first frame's size alone."""
+    b = opts["bin"]
+    nv_raw, nu_raw = read_tiff(paths[0]).shape
+    if b > min(nv_raw, nu_raw):
+        raise DatasetError(f"--bin {b}: larger than the {nv_raw} x {nu_raw} pixel frames of "
+                           f"{paths[0]}")
     if base is None:
         px = known["PixelSize"]
         base = Geometry(mode="cone", DSD=known["DistanceSourceDetector"],
@@ -383,179 +544,223 @@ def _tiff_scan(source: Path, opts: dict, record: dict) -> tuple:
                         sVoxel=(1e-3 * px,) * 3, angles=angles)
     elif tuple(base.nDetector) != (nv_raw, nu_raw):
         raise DatasetError(f"{paths[0]}: frame [v, u] = {[nv_raw, nu_raw]} but "
-                             f"{opts['scene']} nDetector = {list(base.nDetector)}")
-    angles = opts["angle_sign"] * angles
+                           f"{opts['scene']} nDetector = {list(base.nDetector)}")
     # binning drops trailing rows/columns: the kept detector's centre moves by half of them
     (dv, du), rv, ru = base.dDetector, nv_raw % b, nu_raw % b
     geo = base.replace(nDetector=(nv_raw // b, nu_raw // b),
                        sDetector=((nv_raw // b) * b * dv, (nu_raw // b) * b * du),
                        offDetector=(base.offDetector[0] - rv / 2 * dv,
-                                    base.offDetector[1] - ru / 2 * du), angles=angles)
-    return raw, geo, (nv_raw, nu_raw), unit
+                                    base.offDetector[1] - ru / 2 * du),
+                       angles=opts["angle_sign"] * angles)
+    return geo, (nv_raw, nu_raw)
 
 
-def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,
-                bin=1, train_views=None, test_views=0, seed=0, reference=None,
-                nVoxel=None, sVoxel=None, scene=None, angles=None, angle_sign=1,
-                unit=None, check=False, overwrite=False) -> dict:
-    """``mi-grg import``: see the module docstring and docs/real_data.md. Returns the
-    import record (also written as OUT/import.json)."""
-    from mi_grg.data.dataset import _json_default, save_case
-    source, out = Path(source), Path(out)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise DatasetError(f"--out {out}: exists and is not empty (use --overwrite)")
-    if not source.exists() and not _glob.glob(str(source)):
-        raise DatasetError(f"{source}: not found")
-    if int(bin) < 1:
-        raise DatasetError(f"--bin {bin}: must be an integer >= 1")
-    if reference not in (None, "none", "fdk-all"):
-        raise DatasetError(f"--reference {reference!r}: expected fdk-all or none")
-    if angle_sign not in (1, -1):
-        raise DatasetError(f"--angle-sign {angle_sign}: expected 1 or -1")
-    opts = dict(flats=flats, darks=darks, free_ray=free_ray, cor=cor, bin=int(bin),
-                train_views=train_views, test_views=test_views, seed=seed, reference=reference,
-                nVoxel=nVoxel, sVoxel=sVoxel, scene=scene, angles=angles,
-                angle_sign=angle_sign, unit=unit)
-    record = {"command": "mi-grg import", "options": opts}
-    is_pickle = source.suffix.lower() in (".pickle", ".pkl")
+def _given_cor(geo: Geometry, raw_shape, opts: dict) -> tuple:
+    """(offDetector[1], record) for --cor PIXELS or none; (None, None) for --cor auto."""
+    cor, b = opts["cor"], opts["bin"]
+    du_raw = geo.dDetector[1] / b
+    if cor == "auto":
+        return None, None
+    if cor is None:
+        return geo.offDetector[1], {"method": "none (offDetector from the source)",
+                                    "offDetector_u": geo.offDetector[1]}
+    pix = float(cor)
+    off = pix * du_raw - (raw_shape[1] % b) / 2 * du_raw   # dropped columns move the centre
+    return off, {"method": "given", "pixels": pix, "offDetector_u": off}
 
-    if is_pickle:
-        given = [k for k, v in (("--flats", flats), ("--darks", darks), ("--cor", cor),
-                                ("--scene", scene), ("--angles", angles), ("--nVoxel", nVoxel),
-                                ("--sVoxel", sVoxel), ("--train-views", train_views))
-                 if v is not None] + (["--bin"] if int(bin) != 1 else []) + \
-                (["--test-views"] if test_views else []) + \
-                (["--free-ray"] if free_ray != "auto" else []) + \
-                (["--angle-sign"] if angle_sign != 1 else [])
-        if given:
-            raise DatasetError(f"{source}: {', '.join(given)} do not apply to a NAF pickle "
-                                 "(its projections are line integrals with their own split, "
-                                 "geometry and volume)")
-        case, notes = naf_case(load_naf(source), source)
-        record["source"] = {"kind": "naf-pickle", "file": str(source), **notes,
-                            "loader": "restricted unpickler (dicts, lists, numbers, strings, "
-                                      "numpy arrays)"}
-        geo_all, proj_all = case.geometry, case.train
-        unit = unit or "m"
-        record["source"]["length_scale"] = f"{NAF_LENGTH_SCALE} (the pickle's mm -> m)"
+
+def _auto_cor(proj: np.ndarray, geo: Geometry, raw_shape, b: int) -> tuple:
+    """(offDetector[1], record) estimated from the projections (``estimate_cor``)."""
+    du_raw = geo.dDetector[1] / b
+    crop = (raw_shape[1] % b) / 2 * du_raw
+    uc, unc = estimate_cor(proj, geo.angles)
+    off = (geo.nDetector[1] / 2 - uc) * geo.dDetector[1]
+    return off, {"method": "auto (symmetry of the view-summed projections)",
+                 "offDetector_u": off, "pixels": (off + crop) / du_raw,
+                 "uncertainty_pixels": unc * b}
+
+
+def _cor_label(opts: dict, rec: dict) -> str:
+    if opts["cor"] == "auto":
+        return f"--cor auto (found {rec['pixels']:.2f} pixels)"
+    return f"--cor {opts['cor']}" if opts["cor"] is not None else "offDetector[1] of the source"
+
+
+def _normalised(raw, paths, opts: dict, raw_shape, record: dict) -> np.ndarray:
+    """Line integrals from the raw counts: flats/darks (checked against each other first)
+    and free-ray columns as the options say; the choices go into ``record``."""
+    b, free_ray = opts["bin"], opts["free_ray"]
+    dark = flat = None
+    if opts["darks"]:
+        dark, files = mean_frame(opts["darks"], b, raw_shape, "dark")
+        record["darks"] = {"files": len(files), "first": files[0]}
+    if opts["flats"]:
+        flat, files = mean_frame(opts["flats"], b, raw_shape, "flat")
+        record["flats"] = {"files": len(files), "first": files[0]}
+        check_flat_dark(flat, dark, opts)
+    if free_ray == "none":
+        cols = None
+    elif free_ray == "auto":
+        sig = raw - (0.0 if dark is None else dark)
+        if flat is not None:
+            sig = sig / np.maximum(flat - (0.0 if dark is None else dark), 1e-6)
+        cols = detect_free_columns(sig, paths)
+        if flat is None and len(cols) == 0:
+            raise DatasetError(f"{paths[0].parent}: no free-ray columns found (the object "
+                               "shadows the detector's edges?); give --flats or "
+                               "--free-ray A:B,C:D")
     else:
-        raw, geo, raw_shape, unit = _tiff_scan(source, opts, record)
-        b = int(bin)
-        dark = flat = None
-        if darks:
-            dark, files = mean_frame(darks, b, raw_shape, "dark")
-            record["darks"] = {"files": len(files), "first": files[0]}
-        if flats:
-            flat, files = mean_frame(flats, b, raw_shape, "flat")
-            record["flats"] = {"files": len(files), "first": files[0]}
-        if free_ray == "none":
-            cols = None
-        elif free_ray == "auto":
-            sig = raw - (0.0 if dark is None else dark)
-            if flat is not None:
-                sig = sig / np.maximum(flat - (0.0 if dark is None else dark), 1e-6)
-            cols = detect_free_columns(sig)
-            if flat is None and len(cols) == 0:
-                raise DatasetError(f"{source}: no free-ray columns found (the object "
-                                     "shadows the detector's edges?); give --flats or "
-                                     "--free-ray A:B,C:D")
-        else:
-            cols = parse_columns(free_ray, raw_shape[1], b)
-        proj_all, rec = normalise(raw, dark, flat, cols)
-        del raw
-        rec["method"] = "flats/darks" if flat is not None else "free-ray I0 per view"
-        rec["free_ray_columns"] = None if cols is None else [int(c) for c in cols]
-        record["normalisation"] = rec
-        # the centre of rotation: offDetector[1] (raw pixels in the record)
-        # --cor PIXELS and the record count raw pixels of the whole (uncropped) detector
-        du_raw = geo.dDetector[1] / b
-        crop = (raw_shape[1] % b) / 2 * du_raw   # centre shift from dropped columns
-        if cor == "auto":
-            uc, unc = estimate_cor(proj_all, geo.angles)
-            off = (geo.nDetector[1] / 2 - uc) * geo.dDetector[1]
-            record["cor"] = {"method": "auto (symmetry of the view-summed projections)",
-                             "offDetector_u": off, "pixels": (off + crop) / du_raw,
-                             "uncertainty_pixels": unc * b}
-        elif cor is not None:
-            try:
-                pix = float(cor)
-            except ValueError:
-                raise DatasetError(f"--cor {cor!r}: expected auto or a number of pixels") \
-                    from None
-            off = pix * du_raw - crop
-            record["cor"] = {"method": "given", "pixels": pix, "offDetector_u": off}
-        else:
-            off = geo.offDetector[1]
-            record["cor"] = {"method": "none (offDetector from the source)",
-                             "offDetector_u": off}
-        geo_all = geo.replace(offDetector=(geo.offDetector[0], off))
+        cols = parse_columns(free_ray, raw_shape[1], b)
+    proj, rec = normalise(raw, dark, flat, cols)
+    rec["method"] = "flats/darks" if flat is not None else "free-ray I0 per view"
+    rec["free_ray_columns"] = None if cols is None else [int(c) for c in cols]
+    record["normalisation"] = rec
+    return proj
 
-    # views
-    if is_pickle:   # its own split; "all projections" = train + val
-        case_geo = geo_all
-        test_angles, test = case.test_angles, case.test
-        train_idx = np.arange(geo_all.n_views)
-        vol_geo = geo_all.with_angles(np.concatenate([geo_all.angles, test_angles]))
-        proj_all = np.concatenate([case.train, test])
+
+def _from_tiffs(source: Path, out: Path, opts: dict, record: dict) -> tuple:
+    """Raw TIFFs -> (line integrals of every view, geometry with the centre of rotation,
+    length unit); sizes checked before the projections are read."""
+    paths, angles, base, known, unit = _tiff_source(source, opts, record)
+    check_apart(out, paths)
+    geo, raw_shape = _binned_geometry(paths, angles, base, known, opts)
+    off, cor_rec = _given_cor(geo, raw_shape, opts)
+    if off is None:   # --cor auto: the cylinder is known after the estimate; a cube till then
+        vox = (_n_across(geo, opts["nVoxel"]),) * 3
     else:
-        a = geo_all.angles
-        span = np.abs(a - a[0]) >= 2 * np.pi - 1e-6
-        keep = np.flatnonzero(~span)
-        if keep.size < a.size:
-            record["dropped_views"] = {"indices": np.flatnonzero(span).tolist(),
-                                       "why": "repeat an angle 360 degrees on"}
-        proj_all, a = proj_all[keep], a[keep]
-        train_idx, test_idx = select_views(a.size, train_views, int(test_views or 0), seed)
-        n_vox = int(nVoxel) if nVoxel else min(geo_all.nDetector[1], MAX_DEFAULT_VOXELS)
-        vol = default_volume(geo_all, n_vox, sVoxel)
-        try:
-            vol_geo = geo_all.replace(angles=a, **vol)
-        except GeometryError as e:
-            raise DatasetError(f"volume: {e}") from e
-        case_geo = vol_geo.with_angles(a[train_idx])
-        test_angles, test = a[test_idx], proj_all[test_idx]
-        record["views"] = {"n_scan": int(a.size), "train": train_idx.tolist(),
-                           "test": test_idx.tolist(), "seed": seed}
-        record["volume"] = {"nVoxel": list(vol_geo.nVoxel), "sVoxel": list(vol_geo.sVoxel),
-                            "rule": "given --sVoxel cube" if sVoxel else
-                            "largest cylinder every view sees"}
-    vol_gt = case.vol_gt if is_pickle and reference != "none" else None
+        vox = plan_volume(geo.replace(offDetector=(geo.offDetector[0], off)), opts["nVoxel"],
+                          opts["sVoxel"], _cor_label(opts, {}))["nVoxel"]
+    check_sizes(len(paths), geo.nDetector, vox, opts["max_memory"])
+    raw = read_stack(paths, opts["bin"], raw_shape)
+    record["source"]["projections"] = [str(paths[0]), str(paths[-1]), len(paths)]
+    proj = _normalised(raw, paths, opts, raw_shape, record)
+    del raw
+    if off is None:
+        off, cor_rec = _auto_cor(proj, geo, raw_shape, opts["bin"])
+    record["cor"] = cor_rec
+    return proj, geo.replace(offDetector=(geo.offDetector[0], off)), unit
+
+
+def _tiff_views(proj_all, geo_all: Geometry, opts: dict, record: dict) -> tuple:
+    """(projections of the kept views, volume geometry with their angles, training and
+    test indices into them): a view 360 degrees after the first is dropped."""
+    a = geo_all.angles
+    span = np.abs(a - a[0]) >= 2 * np.pi - 1e-6
+    keep = np.flatnonzero(~span)
+    if keep.size < a.size:
+        record["dropped_views"] = {"indices": np.flatnonzero(span).tolist(),
+                                   "why": "repeat an angle 360 degrees on"}
+    proj_all, a = proj_all[keep], a[keep]
+    train_idx, test_idx = select_views(a.size, opts["train_views"],
+                                       int(opts["test_views"] or 0), opts["seed"])
+    vol = plan_volume(geo_all, opts["nVoxel"], opts["sVoxel"],
+                      _cor_label(opts, record["cor"]))
+    record["sizes"] = check_sizes(a.size, geo_all.nDetector, vol["nVoxel"],
+                                  opts["max_memory"])
+    try:
+        vol_geo = geo_all.replace(angles=a, **vol)
+    except GeometryError as e:
+        raise DatasetError(f"volume: {e}") from e
+    record["views"] = {"n_scan": int(a.size), "train": train_idx.tolist(),
+                       "test": test_idx.tolist(), "seed": opts["seed"]}
+    record["volume"] = {"nVoxel": list(vol_geo.nVoxel), "sVoxel": list(vol_geo.sVoxel),
+                        "rule": "given --sVoxel cube" if opts["sVoxel"] else
+                        "largest cylinder every view sees"}
+    return proj_all, vol_geo, train_idx, test_idx
+
+
+def _pickle_options_given(opts: dict) -> list:
+    given = [f for f, k in (("--flats", "flats"), ("--darks", "darks"), ("--cor", "cor"),
+                            ("--scene", "scene"), ("--angles", "angles"),
+                            ("--nVoxel", "nVoxel"), ("--sVoxel", "sVoxel"),
+                            ("--train-views", "train_views")) if opts[k] is not None]
+    return given + [f for f, bad in (("--bin", opts["bin"] != 1),
+                                     ("--test-views", bool(opts["test_views"])),
+                                     ("--free-ray", opts["free_ray"] != "auto"),
+                                     ("--angle-sign", opts["angle_sign"] != 1)) if bad]
+
+
+def _from_pickle(source: Path, opts: dict, record: dict) -> tuple:
+    """(the pickle's case, all projections, their volume geometry, unit)."""
+    given = _pickle_options_given(opts)
+    if given:
+        raise DatasetError(f"{source}: {', '.join(given)} do not apply to a NAF pickle "
+                           "(its projections are line integrals with their own split, "
+                           "geometry and volume)")
+    case, notes = naf_case(load_naf(source), source)
+    record["source"] = {"kind": "naf-pickle", "file": str(source), **notes,
+                        "loader": "restricted unpickler (dicts, lists, numbers, strings, "
+                                  "numpy arrays)",
+                        "length_scale": f"{NAF_LENGTH_SCALE} (the pickle's mm -> m)"}
+    geo = case.geometry
+    record["sizes"] = check_sizes(geo.n_views + len(case.test_angles), geo.nDetector,
+                                  geo.nVoxel, opts["max_memory"])
+    vol_geo = geo.with_angles(np.concatenate([geo.angles, case.test_angles]))
+    return case, np.concatenate([case.train, case.test]), vol_geo, opts["unit"] or "m"
+
+
+def _reference(proj_all, vol_geo: Geometry, opts: dict, vol_gt, unit: str) -> tuple:
+    """(reference volume or None, the case's info)."""
     info = {"source": "mi_grg.data.raw_import", "import": IMPORT_JSON,
             "units": {"length": unit, "density": f"1/{unit}", "normalised": False}}
-    if reference == "fdk-all":
-        from mi_grg.classical.fdk import fdk
+    if opts["reference"] == "fdk-all":
+        from mi_grg.core.fdk import fdk
         vol_gt = fdk(proj_all, vol_geo)
         info["reference"] = (f"pseudo ground truth: FDK of all {vol_geo.n_views} projections "
                              "(--reference fdk-all)")
     elif vol_gt is not None:
         info["reference"] = "the pickle's image"
-    record["reference"] = info.get("reference")
-    out_case = Case(geometry=case_geo, train=proj_all[train_idx], test_angles=test_angles,
-                    test=test, vol_gt=vol_gt, info=info)
-    record["geometry"] = case_geo.to_scanner_dict()
+    return vol_gt, info
 
-    tmp = out.parent / f".{out.name}.import-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    try:
-        save_case(out_case, tmp)
-        if vol_gt is not None:   # the reference as CT tools open it, in the scan's unit
+
+def _write(out: Path, case: Case, record: dict, check: bool, proj_all, vol_geo) -> None:
+    """The case, import.json and check.png, replacing ``out`` only once all are written."""
+    from mi_grg.data.dataset import _json_default, save_case
+    with replaced_dir(out, "import") as tmp:
+        save_case(case, tmp)
+        if case.vol_gt is not None:   # the reference as CT tools open it, in the scan's unit
             from mi_grg.data.export import write_case_volume
-            write_case_volume(tmp, "vol_gt", vol_gt, case_geo, info["units"], ("tiff", "nifti"))
+            write_case_volume(tmp, "vol_gt", case.vol_gt, case.geometry,
+                              case.info["units"], ("tiff", "nifti"))
         if check:
-            write_check(tmp / CHECK_PNG, proj_all, vol_geo, vol_gt)
+            write_check(tmp / CHECK_PNG, proj_all, vol_geo, case.vol_gt)
             record["check"] = CHECK_PNG
         (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=2, default=_json_default))
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+
+def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,
+                bin=1, train_views=None, test_views=0, seed=0, reference=None,
+                nVoxel=None, sVoxel=None, scene=None, angles=None, angle_sign=1,
+                unit=None, check=False, overwrite=False, max_memory=None) -> dict:
+    """``mi-grg import``: see the module docstring and docs/real_data.md. Returns the
+    import record (also written as OUT/import.json). Nothing is written before every
+    input is checked, never into or over an input, and an existing ``out`` is replaced
+    only when the new one is complete."""
+    source, out = Path(source), Path(out)
+    opts = _checked_options(source, dict(
+        flats=flats, darks=darks, free_ray=free_ray, cor=cor, bin=bin,
+        train_views=train_views, test_views=test_views, seed=seed, reference=reference,
+        nVoxel=nVoxel, sVoxel=sVoxel, scene=scene, angles=angles, angle_sign=angle_sign,
+        unit=unit, max_memory=default_memory_limit() if max_memory is None else max_memory))
+    _check_out(out, source, opts, overwrite)
+    record = {"command": "mi-grg import", "options": opts}
+    if source.suffix.lower() in (".pickle", ".pkl"):   # its own split; all = train + val
+        case, proj_all, vol_geo, unit = _from_pickle(source, opts, record)
+        case_geo, test_angles, test = case.geometry, case.test_angles, case.test
+        train_idx, vol_gt = np.arange(case_geo.n_views), case.vol_gt
+        if opts["reference"] == "none":
+            vol_gt = None
+    else:
+        proj_all, geo_all, unit = _from_tiffs(source, out, opts, record)
+        proj_all, vol_geo, train_idx, test_idx = _tiff_views(proj_all, geo_all, opts, record)
+        case_geo = vol_geo.with_angles(vol_geo.angles[train_idx])
+        test_angles, test, vol_gt = vol_geo.angles[test_idx], proj_all[test_idx], None
+    vol_gt, info = _reference(proj_all, vol_geo, opts, vol_gt, unit)
+    record["reference"] = info.get("reference")
+    record["geometry"] = case_geo.to_scanner_dict()
+    out_case = Case(geometry=case_geo, train=proj_all[train_idx], test_angles=test_angles,
+                    test=test, vol_gt=vol_gt, info=info)
+    _write(out, out_case, record, check, proj_all, vol_geo)
     return record
 
 
@@ -565,7 +770,7 @@ def write_check(path, proj: np.ndarray, geo: Geometry, vol=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     if vol is None:
-        from mi_grg.classical.fdk import fdk
+        from mi_grg.core.fdk import fdk
         nx, ny, nz = geo.nVoxel
         dz = geo.dVoxel[2]
         vol = fdk(proj, geo.replace(nVoxel=(nx, ny, 1), sVoxel=(*geo.sVoxel[:2], dz)))

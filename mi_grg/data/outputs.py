@@ -1,0 +1,156 @@
+"""Where a command writes: never onto its inputs, and an old output replaced atomically.
+
+``check_apart`` refuses an output directory that is, contains or lies inside an input.
+``replaced_dir`` writes a new output into a hidden temporary directory beside it and swaps
+it in at the end: a failure (or a kill) before the swap leaves the old output as it was; the
+swap is two renames, and ``clean_stale`` repairs a kill between them on the next run
+(the old output is put back, temporaries of dead processes are removed).
+"""
+from __future__ import annotations
+
+import contextlib
+import glob as _glob
+import os
+import re
+import shutil
+import sys
+from pathlib import Path
+
+from mi_grg.data.dataset import META_NAME, DatasetError
+
+
+def input_paths(pattern) -> list:
+    """The files a path or glob pattern names (the pattern itself when nothing matches)."""
+    if pattern is None:
+        return []
+    matches = _glob.glob(str(pattern))
+    return [Path(p) for p in matches] if matches else [Path(pattern)]
+
+
+def check_apart(out, inputs, option: str = "--out") -> None:
+    """DatasetError when ``out`` is, contains or lies inside one of ``inputs``: writing
+    there could delete or change the input."""
+    target = Path(out).resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target or target in src.parents:
+            how = "is" if src == target else "holds"
+            raise DatasetError(f"{option} {out}: {how} the input {p}; give an {option} "
+                               "directory apart from the inputs")
+        if src in target.parents:
+            raise DatasetError(f"{option} {out}: lies inside the input {p}; give an "
+                               f"{option} directory apart from the inputs")
+
+
+def check_writable(out, option: str = "--out") -> None:
+    """DatasetError unless ``out`` can be created or written: it is a directory (or does
+    not exist yet) and its nearest existing ancestor is a writable directory."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"{option} {out}: is a file; expected a directory")
+    parent = out if out.exists() else out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise DatasetError(f"{option} {out}: {parent} is a file; expected a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise DatasetError(f"{option} {out}: {parent} is not writable")
+
+
+def check_replaceable(out, overwrite: bool, option: str = "--out") -> None:
+    """DatasetError unless a non-empty ``out`` may be replaced: ``overwrite`` given, ``out``
+    a data set (it has meta_data.json: an unrelated folder is never deleted), and every
+    folder in it writable, so that the old output can be removed after the swap."""
+    out = Path(out)
+    if not (out.is_dir() and any(out.iterdir())):
+        return
+    if not overwrite:
+        raise DatasetError(f"{option} {out}: exists and is not empty (use --overwrite)")
+    if not (out / META_NAME).is_file():
+        raise DatasetError(f"{option} {out}: not a data set (no {META_NAME}); --overwrite "
+                           "only replaces an earlier output, give a new directory")
+    for folder in [out, *(p for p in out.rglob("*") if p.is_dir() and not p.is_symlink())]:
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise DatasetError(f"{option} {out}: {folder} is not writable, so the old "
+                               "output could not be removed")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise DatasetError(f"{option} {out}: {out.parent} is not writable")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _temporaries(out: Path, tag: str) -> list:
+    """(kind, pid, path) of the hidden temporaries beside ``out``."""
+    pattern = re.compile(rf"\.{re.escape(out.name)}\.({re.escape(tag)}|old)-(\d+)")
+    found = []
+    for p in out.parent.glob(f".{_glob.escape(out.name)}.*-*"):
+        m = pattern.fullmatch(p.name)
+        if m:
+            found.append((m.group(1), int(m.group(2)), p))
+    return found
+
+
+def clean_stale(out, tag: str) -> list:
+    """Repair what a killed run left beside ``out``: its old output is put back when the
+    swap did not finish, its temporaries are removed. Returns one note per repair."""
+    out = Path(out)
+    notes = []
+    if not out.parent.is_dir():
+        return notes
+    stale = [t for t in _temporaries(out, tag) if t[1] != os.getpid() and not _alive(t[1])]
+    for kind, pid, path in sorted(stale, key=lambda t: t[0] != "old"):
+        if kind == "old" and not out.exists():
+            os.rename(path, out)
+            notes.append(f"restored {out} from {path.name} (a run, pid {pid}, was killed "
+                         "while replacing it)")
+        else:
+            shutil.rmtree(path)
+            notes.append(f"removed {path.name}, left by a killed run (pid {pid})")
+    return notes
+
+
+def _swap(tmp: Path, out: Path) -> None:
+    """Move ``tmp`` to ``out``; an existing ``out`` is renamed aside first, put back when
+    the second rename fails, and removed once the new output is in place."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    os.rename(out, old)
+    try:
+        os.rename(tmp, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    try:
+        shutil.rmtree(old)
+    except OSError as e:   # the new output is complete; say what is left, do not fail
+        print(f"warning: {out} replaced, but its previous version is left at {old} ({e})",
+              file=sys.stderr)
+
+
+@contextlib.contextmanager
+def replaced_dir(out, tag: str):
+    """Yield a fresh temporary directory beside ``out``; when the block succeeds it
+    becomes ``out`` (replacing an old one), otherwise it is removed and ``out`` is left
+    as it was."""
+    out = Path(out)
+    for note in clean_stale(out, tag):
+        print(f"note: {note}", file=sys.stderr)
+    tmp = out.parent / f".{out.name}.{tag}-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        yield tmp
+        _swap(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
