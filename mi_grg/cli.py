@@ -112,10 +112,12 @@ def _default_scan(args):
 def cmd_simulate(args) -> int:
     from mi_grg.data.dataset import save_case
     from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.outputs import check_replaceable, replaced_dir
     from mi_grg.data.scene import load_scan, scan_to_xml
     from mi_grg.data.simulate import simulate_case
 
     _check_out(args, [args.scene])
+    check_replaceable(args.out, overwrite=True)   # a data set, not any other folder
     if args.scene:
         _refuse_scene_conflicts(args)
         # --views / --test-views are overrides that load_scan applies to the scan itself, so
@@ -135,8 +137,10 @@ def cmd_simulate(args) -> int:
                          seed=seed, noise_seed=scan.noise["seed"] if scan.noise else None)
     case.info["scene"] = scan.info()          # echoed into metrics.json by reconstruct
     case.info["scene_xml"] = SCENE_XML
-    out = save_case(case, args.out, exr=args.exr)
-    (out / SCENE_XML).write_text(xml)
+    with replaced_dir(args.out, "simulate") as tmp:   # an earlier data set: replaced whole
+        save_case(case, tmp, exr=args.exr)
+        (tmp / SCENE_XML).write_text(xml)
+    out = Path(args.out)
     geometry = scan.geometry
     print(f"wrote {out} ({geometry.n_views} train / {len(scan.test_angles)} test views, "
           f"{'x'.join(map(str, geometry.nVoxel))} volume, phantom {scan.object['phantom']}, "

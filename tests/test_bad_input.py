@@ -1,4 +1,4 @@
-"""Bad input for `mi-grg import` and `mi-grg reconstruct`: each broken input of the tables
+"""Bad input for `mi-grg import`, `reconstruct` and `simulate`: each broken input of the tables
 below ends in exit status 2 and one line on stderr naming the culprit, with every input and
 any earlier output byte-identical afterwards (the whole folder is hashed before and after).
 Also: replacing an output is atomic (a failure mid-swap, a killed run) and no traceback
@@ -257,6 +257,16 @@ RECONSTRUCT_CASES = {
 }
 
 
+TINY = ["--n", "8", "--det", "12", "--views", "4", "--test-views", "0"]
+SIMULATE_CASES = {
+    "out holds the scene": (["--scene", "{r}/scene.xml", "--out", "{r}"], None,
+                            ["--out", "holds the input", "scene.xml"]),
+    "out is a folder that is no data set": (TINY + ["--out", "{r}/other"], _other_folder,
+                                            ["--out", "meta_data.json"]),
+    "out is a file": (TINY + ["--out", "{r}/notes.txt"], _a_file, ["--out", "is a file"]),
+}
+
+
 def _check_refused(command, cases, name, root, capsys):
     argv, breaks, culprits = cases[name]
     if breaks:
@@ -280,6 +290,21 @@ def test_import_refuses(name, root, capsys):
 @pytest.mark.parametrize("name", list(RECONSTRUCT_CASES))
 def test_reconstruct_refuses(name, root, capsys):
     _check_refused("reconstruct", RECONSTRUCT_CASES, name, root, capsys)
+
+
+@pytest.mark.parametrize("name", list(SIMULATE_CASES))
+def test_simulate_refuses(name, root, capsys):
+    _check_refused("simulate", SIMULATE_CASES, name, root, capsys)
+
+
+def test_simulate_replaces_an_earlier_data_set_whole(root, capsys):
+    """Not a merge: a file of the earlier data set that the new one lacks is gone."""
+    stray = root / "data" / "proj_train" / "proj_train_0099.npy"
+    shutil.copy(root / "data" / "proj_train" / "proj_train_0000.npy", stray)
+    rc, err = run_cli(["simulate", *TINY, "--out", f"{root}/data"], capsys)
+    assert rc == 0, err
+    assert not stray.exists() and len(list((root / "data" / "proj_train").iterdir())) == 4
+    assert not [p for p in root.iterdir() if p.name.startswith(".")]
 
 
 def test_the_inputs_themselves_import(root, capsys):

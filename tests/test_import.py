@@ -6,13 +6,14 @@ the methods (mi_grg.data.units)."""
 from __future__ import annotations
 
 import json
+import os
 import pickle
 
 import numpy as np
 import pytest
 import tifffile
 
-from mi_grg.classical.fdk import fdk
+from mi_grg.core.fdk import fdk
 from mi_grg.core.geometry import Geometry, circular_angles
 from mi_grg.data.dataset import load_case
 from mi_grg.data.phantoms import make_phantom
@@ -238,13 +239,16 @@ def test_naf_pickle(tmp_path):
     np.testing.assert_allclose(ref.vol_gt, rec_vol, atol=1e-4 * np.abs(rec_vol).max())
     assert "FDK of all 30" in ref.info["reference"]
 
+    marker = tmp_path / "owned"
+
     class Evil:
         def __reduce__(self):
-            return (print, ("owned",))
+            return (os.system, (f"echo owned > {marker}",))
     bad = tmp_path / "evil.pickle"
     bad.write_bytes(pickle.dumps({**data, "x": Evil()}))
-    with pytest.raises(DatasetError, match="refuses the type builtins.print"):
+    with pytest.raises(DatasetError, match="refuses the type posix.system"):
         load_naf(bad)
+    assert not marker.exists()   # refused before it ran
     objs = tmp_path / "objs.pickle"
     objs.write_bytes(pickle.dumps({**data, "x": np.array([{}], dtype=object)}))
     with pytest.raises(DatasetError):

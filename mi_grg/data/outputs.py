@@ -67,8 +67,8 @@ def check_replaceable(out, overwrite: bool, option: str = "--out") -> None:
     if not overwrite:
         raise DatasetError(f"{option} {out}: exists and is not empty (use --overwrite)")
     if not (out / META_NAME).is_file():
-        raise DatasetError(f"{option} {out}: not a data set (no {META_NAME}); --overwrite "
-                           "only replaces an earlier output, give a new directory")
+        raise DatasetError(f"{option} {out}: not a data set (no {META_NAME}), and only an "
+                           "earlier output is ever replaced; give a new directory")
     for folder in [out, *(p for p in out.rglob("*") if p.is_dir() and not p.is_symlink())]:
         if not os.access(folder, os.W_OK | os.X_OK):
             raise DatasetError(f"{option} {out}: {folder} is not writable, so the old "
