@@ -397,9 +397,9 @@ MAX_ENTRIES = 2 ** 31
 #: Float32 copies that an import holds at once: of the projection stack (counts, signal,
 #: transmission, line integrals) and of the volume (FDK's accumulator, indices, result).
 PROJECTION_COPIES, VOLUME_COPIES = 4, 4
-#: The tallest default volume, in slices per voxel across; a taller one means that the axis
-#: projects near the detector's edge (a wrong --cor).
-MAX_ASPECT = 4
+#: The narrowest default cylinder, as a fraction of the one a centred axis gives: a
+#: narrower one means that the axis projects near the detector's edge (a wrong --cor).
+MIN_WIDTH_FRACTION = 0.25
 
 
 def default_memory_limit() -> float:
@@ -438,19 +438,20 @@ def _n_across(geo: Geometry, n_voxel) -> int:
 
 
 def plan_volume(geo: Geometry, n_voxel, side, cor_label: str) -> dict:
-    """nVoxel / sVoxel of the case (``default_volume``), refusing a default cylinder that
-    is far taller than wide: the axis then projects near the detector's edge."""
+    """nVoxel / sVoxel of the case (``default_volume``), refusing a default cylinder
+    far narrower than a centred axis would give: the axis then projects near the
+    detector's edge, and the volume would be a thin, tall needle."""
     try:
         vol = default_volume(geo, _n_across(geo, n_voxel), side)
     except DatasetError as e:
         raise DatasetError(f"{cor_label}: {e}; check --cor") from None
-    nx, _, nz = vol["nVoxel"]
-    if side is None and nz > MAX_ASPECT * nx:
-        edge = geo.nDetector[1] / 2 - abs(geo.offDetector[1]) / geo.dDetector[1]
+    half = geo.nDetector[1] / 2 * geo.dDetector[1]
+    if side is None and half - abs(geo.offDetector[1]) < MIN_WIDTH_FRACTION * half:
+        edge = (half - abs(geo.offDetector[1])) / geo.dDetector[1]
         raise DatasetError(f"{cor_label}: the axis projects {edge:.1f} pixels from the "
                            "detector's edge, so the largest cylinder every view sees is "
-                           f"{vol['sVoxel'][0]:.3g} wide and {nz} slices high; check --cor "
-                           "or give --sVoxel")
+                           f"{vol['sVoxel'][0]:.3g} wide and {vol['nVoxel'][2]} slices high; "
+                           "check --cor or give --sVoxel")
     return vol
 
 
