@@ -375,6 +375,25 @@ def test_a_killed_import_leaves_no_lasting_temporary(root, capsys):
     assert not [p for p in root.iterdir() if p.name.startswith(".")]
 
 
+def test_a_temporary_that_cannot_be_removed_is_named(root, capsys, monkeypatch):
+    """A leftover that even the next run cannot remove (e.g. read-only) is named on
+    stderr and does not stop that run."""
+    import mi_grg.data.outputs as outputs
+    pid = _dead_pid()
+    (root / f".prev.old-{pid}").mkdir()
+    real = shutil.rmtree
+
+    def failing(path, *a, **k):
+        if f".prev.old-{pid}" in str(path):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *a, **k)
+    monkeypatch.setattr(outputs.shutil, "rmtree", failing)
+    rc, err = run_cli(["import", *(a.replace("{r}", str(root)) for a in FIPS), "--sVoxel", "5",
+                       "--out", f"{root}/prev", "--overwrite"], capsys)
+    assert rc == 0, err
+    assert f".prev.old-{pid}" in err and "remove it by hand" in err
+
+
 # ---------------------------------------------------------------- no traceback
 def test_no_traceback_in_a_real_process(root):
     """The installed entry point, as a user runs it: one line on stderr, exit 2."""

@@ -112,7 +112,12 @@ def clean_stale(out, tag: str) -> list:
             notes.append(f"restored {out} from {path.name} (a run, pid {pid}, was killed "
                          "while replacing it)")
         else:
-            shutil.rmtree(path)
+            try:
+                shutil.rmtree(path)
+            except OSError as e:   # named, but it must not block this run
+                notes.append(f"{path} is left by a run (pid {pid}) and cannot be removed "
+                             f"({e}); remove it by hand")
+                continue
             notes.append(f"removed {path.name}, left by a killed run (pid {pid})")
     return notes
 
