@@ -26,13 +26,13 @@ import mi_grg  # noqa: F401  (before mitsuba / drjit)
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.classical.fdk import fdk, fdk_backproject, filter_projections
+from mi_grg.core.fdk import fdk, fdk_backproject, filter_projections
 from mi_grg.classical.iterative import asd_pocs, sart
 from mi_grg.evaluation.metrics import psnr_3d, ssim_3d
 from mi_grg.data.noise import NoiseModel
 from mi_grg.data.phantoms import make_phantom
 from mi_grg.data.simulate import default_geometry
-from mi_grg.classical.joseph import JosephProjector
+from mi_grg.core.joseph import JosephProjector
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))          # the RTK geometry mapping lives there

@@ -50,7 +50,7 @@ def heldout(name: str, variant: str) -> None:
     import mi_grg  # noqa: F401  (before mitsuba: it picks the variant and LLVM)
     import mitsuba as mi
     from scipy.ndimage import gaussian_filter
-    from mi_grg.classical.joseph import forward_project
+    from mi_grg.core.joseph import forward_project
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.voxelizer import voxelize
     from mi_grg.evaluation.metrics import psnr_3d

@@ -3,7 +3,7 @@ held-out PSNR is still rising, and how late it stops a real decline, for several
 ``stop_noise`` values (the margin's multiple of the curve's own scatter; 0 is the rule
 before it: 0.5 % of the best alone).
 
-Monte Carlo with ``mi_grg.training.early_stop.EarlyStopper`` itself on synthetic held-out
+Monte Carlo with ``mi_grg.protocol.early_stop.EarlyStopper`` itself on synthetic held-out
 curves shaped like ours: a rise from 20 to 26.5 dB over the unjudged evaluations
 (densification), then a straight trend over the judged ones, plus independent Gaussian
 scatter of sigma dB per evaluation (our runs: median 0.15 dB, up to 0.53). Two schedules:
@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from mi_grg.lab.report import replay_early_stop  # noqa: E402
 from mi_grg.training.config import TrainConfig  # noqa: E402
-from mi_grg.training.early_stop import EarlyStopper  # noqa: E402
+from mi_grg.protocol.early_stop import EarlyStopper  # noqa: E402
 
 NOISES = (0.0, 1.0, 2.0, 3.0)
 #: (name, unjudged evaluations, judged evaluations)

@@ -13,7 +13,7 @@ from mi_grg.data.noise import NoiseModel
 from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training.config import make_config
 from mi_grg.training.densify import DensifyConfig, DensifyError, PGADensifier
-from mi_grg.training.early_stop import EarlyStopper
+from mi_grg.protocol.early_stop import EarlyStopper
 from mi_grg.training.trainer import Trainer
 
 #: Written by the code of commit 42a14d5 (before checkpoint I/O went through state_dict()):

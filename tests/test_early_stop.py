@@ -4,7 +4,7 @@ import numpy as np
 
 import pytest
 
-from mi_grg.training.early_stop import EarlyStopper
+from mi_grg.protocol.early_stop import EarlyStopper
 
 
 def test_stops_on_drop_of_more_than_half_a_percent_from_the_best():

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from mi_grg.data.case import Case
-from mi_grg.classical.fdk import FILTERS, fdk, ramp_filter, reconstruct_fdk
+from mi_grg.classical.fdk import reconstruct_fdk
+from mi_grg.core.fdk import FILTERS, fdk, ramp_filter
 from mi_grg.core.geometry import Geometry, circular_angles
 
 from test_voxel_projector import (ball_chords, ball_volume, from_rtk_volume, rtk_geometry,

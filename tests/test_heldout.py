@@ -1,4 +1,4 @@
-"""Held-out-view stopping and tuning of the classical methods (mi_grg.classical.heldout).
+"""Held-out-view stopping and tuning of the classical methods (mi_grg.protocol.heldout).
 
 References: the held-out split of the trainer (the same function), a scripted method whose
 held-out-view error has a known best sweep and setting, and the contract (which views
@@ -9,11 +9,12 @@ import pytest
 
 import mi_grg  # noqa: F401  (before mitsuba)
 
-from mi_grg.data.case import Case, holdout_split
+from mi_grg.data.case import Case
+from mi_grg.protocol.split import holdout_split
 from mi_grg.core.geometry import circular_angles
-from mi_grg.classical.heldout import run_heldout, stop_rule
+from mi_grg.protocol.heldout import run_heldout, stop_rule
 from mi_grg.classical.iterative import reconstruct_asd_pocs, reconstruct_sart
-from mi_grg.classical.joseph import forward_project
+from mi_grg.core.joseph import forward_project
 
 
 def test_holdout_split():
@@ -73,7 +74,7 @@ def test_rule_picks_the_known_best_sweep_and_setting_then_runs_on_all_views():
         return vol
 
     vol, info = run_heldout(case, run, [{"peak": 3}, {"peak": 6}], max_sweeps=30, name="t",
-                            oracle=False, progress=False)
+                            project=forward_project, oracle=False, progress=False)
     rule = stop_rule()
     held = holdout_split(9, rule["holdout_every"])[1].tolist()
     assert info["held_out_views"] == held and info["final_views"] == list(range(9))
@@ -102,7 +103,7 @@ def test_oracle_is_reported_and_decides_nothing():
         return vol
 
     vol, info = run_heldout(case, run, [{"peak": 3}], max_sweeps=30, name="t",
-                            progress=False)
+                            project=forward_project, progress=False)
     o = info["oracle"]
     assert info["chosen"]["sweeps"] == 3 and "ground truth" in o["label"]
     assert o["best_sweep"] >= 3 and o["psnr_3d_best"] >= o["psnr_3d_chosen"]
@@ -169,6 +170,6 @@ def test_discrepancy_stops_sart_near_its_best_sweep_where_heldout_psnr_cannot():
     assert info["oracle"]["gap_db"] < 0.5
     # The same case with gr's rule alone (no discrepancy step) lands far from its best.
     _, old = run_heldout(case, lambda p, g, **kw: sart(p, g, **kw), [{}], max_sweeps=20,
-                         name="sart", progress=False)
+                         name="sart", project=forward_project, progress=False)
     assert old["oracle"]["gap_db"] > 2.0
     assert "discrepancy" not in old

@@ -14,7 +14,7 @@ from mi_grg.data.case import Case
 from mi_grg.core.geometry import Geometry, circular_angles
 from mi_grg.classical.iterative import (asd_pocs, order_subsets, reconstruct_asd_pocs, reconstruct_sart,
                               sart, tv_gradient, tv_value)
-from mi_grg.classical.joseph import forward_project
+from mi_grg.core.joseph import forward_project
 
 from test_fdk import skimage_slice_case
 
@@ -108,7 +108,7 @@ def test_iterative_methods_beat_fdk_on_noisy_sparse_views():
     settings SART and ASD-POCS are > 1.5 dB better than FDK (measured: FDK 20.7 dB, SART
     23.3 dB, ASD-POCS 24.3 dB). Both semi-converge: on such data their PSNR peaks after a
     few sweeps, hence the default of 10."""
-    from mi_grg.classical.fdk import fdk
+    from mi_grg.core.fdk import fdk
     from mi_grg.evaluation.metrics import psnr_3d
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.phantoms import make_phantom
@@ -150,7 +150,7 @@ def test_contract_options_progress_and_errors(small_cone_geometry, rng, capsys):
     init = np.full(geo.nVoxel, 0.5, np.float32)
     v = sart(case.train, geo, n_iter=1, init=init, relaxation=1e-6, progress=False)
     np.testing.assert_allclose(v, init, atol=1e-4)
-    from mi_grg.classical.fdk import fdk
+    from mi_grg.core.fdk import fdk
     v = sart(case.train, geo, n_iter=1, init="fdk", relaxation=1e-6, progress=False)
     np.testing.assert_allclose(v, np.maximum(fdk(case.train, geo), 0), atol=1e-4)
     with pytest.raises(ValueError, match="init must be"):

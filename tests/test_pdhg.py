@@ -12,7 +12,7 @@ import mi_grg  # noqa: F401  (before mitsuba)
 import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry, circular_angles
-from mi_grg.classical.joseph import JosephProjector, forward_project
+from mi_grg.core.joseph import JosephProjector, forward_project
 from mi_grg.classical.pdhg import (PDHG, divergence, gradient, operator_norm, pdhg,
                                    reconstruct_pdhg, tv_iso)
 

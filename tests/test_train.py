@@ -29,7 +29,7 @@ def test_gr_beats_fdk_and_sart_clearly(tmp_path):
     """The small-case end-to-end check: 48^3 needles, 25 noisy views (about a minute).
     SART stops by its held-out protocol (the discrepancy principle), which puts it level
     with 400 gr iterations here (35.3 dB both); 1000 iterations lead it by ~4 dB."""
-    from mi_grg.data.case import holdout_split
+    from mi_grg.protocol.split import holdout_split
     geo = default_geometry(n=48, det=72, views=25)
     case = simulate_case("needles", geo, default_test_angles(5), NoiseModel(), seed=0)
     _, fdk = mi_grg.reconstruct(case, "fdk")
@@ -248,7 +248,7 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     assert info["kept_iteration"] == kept_at
     np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), seen[kept_at])
     assert not np.array_equal(seen[375], seen[500])       # the two candidates differ
-    # the config's patience reaches the stopper (default 2: mi_grg.training.early_stop says why)
+    # the config's patience reaches the stopper (default 2: mi_grg.protocol.early_stop says why)
     assert make_config("gr").stop_patience == 2
     t3 = Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, stop_noise=0.5,
                                         **TINY), progress=False)

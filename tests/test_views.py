@@ -10,7 +10,8 @@ from mi_grg.data.simulate import default_geometry, default_test_angles, simulate
 from mi_grg.training.config import (ADDED_LATER, ITERATION_RULE, TRAIN_EXTENT, ConfigError,
                                     make_config)
 from mi_grg.training.trainer import Trainer
-from mi_grg.training.views import Stop, ViewProtocol, stop_from
+from mi_grg.protocol.split import MIN_DECISION_VIEWS, holdout_split
+from mi_grg.protocol.views import Stop, ViewProtocol, stop_from
 
 # what today's automatic extent and iteration count resolve to, as metrics.json records them
 AUTO = {"extent": TRAIN_EXTENT, "iteration_rule": ITERATION_RULE}
@@ -35,9 +36,15 @@ def walk(p: ViewProtocol, stop: Stop | None):
 
 def random_protocols(n: int, seed: int = 0):
     rng = np.random.default_rng(seed)
-    for _ in range(n):
+    made = 0
+    while made < n:
         iterations = int(rng.integers(1, 250))
-        p = ViewProtocol(n_views=int(rng.integers(2, 30)), holdout_every=int(rng.choice([0, 2, 3, 8])),
+        n_views, every = int(rng.integers(2, 30)), int(rng.choice([0, 2, 3, 8]))
+        held = len(holdout_split(n_views, every)[1])
+        if every and min(held, n_views - held) < MIN_DECISION_VIEWS:
+            continue            # a split that cannot decide: an error (tested below)
+        made += 1
+        p = ViewProtocol(n_views=n_views, holdout_every=every,
                          holdout_until=float(rng.choice([0.0, 1.0, rng.random()])),
                          iterations=iterations, eval_every=int(rng.integers(1, 60)))
         # a stop at any evaluation the window allows, keeping any earlier evaluation
@@ -92,8 +99,11 @@ def test_holdout_until_one_is_the_old_rule_and_holdout_every_zero_trains_all():
     none = ViewProtocol(25, 0, 0.75, 1500, 125)
     assert len(none.held) == 0 and none.window_end == 0 and not none.decides(125)
     assert none.train_views(1).tolist() == list(range(25))
-    with pytest.raises(ValueError, match="no training views"):
-        ViewProtocol(3, 1, 0.5, 10, 5)
+    # a split must leave two views to decide on and two to fit; the message names the option
+    for n, every in ((3, 1), (8, 8), (25, 30), (3, 2)):
+        with pytest.raises(ValueError, match=f"holdout_every={every} leaves"):
+            ViewProtocol(n, every, 0.5, 10, 5)
+    assert len(ViewProtocol(4, 2, 0.5, 10, 5).held) == 2
     with pytest.raises(ValueError, match="holdout_until"):
         ViewProtocol(25, 8, 1.5, 10, 5)
     with pytest.raises(ConfigError, match="holdout_until"):
@@ -313,7 +323,7 @@ def test_catch_up_equalises_the_expected_draws():
     from; with enough iterations after the join every view's expected draws are equal at the
     end; with too few, the held-out views take every draw and stay behind."""
     n_equal = n_short = 0
-    for p0, stop in random_protocols(300, seed=1):
+    for p0, stop in random_protocols(600, seed=1):
         p = ViewProtocol(p0.n_views, p0.holdout_every, p0.holdout_until, p0.iterations,
                          p0.eval_every, catch_up=True)
         for it in range(1, p.end(stop) + 1):

@@ -1,4 +1,4 @@
-"""Joseph forward projector and its exact adjoint (mi_grg.classical.joseph).
+"""Joseph forward projector and its exact adjoint (mi_grg.core.joseph).
 
 References: adjoint dot-product test; closed-form chord lengths of a ball and of the volume
 box (float64 NumPy); RTK's JosephForwardProjectionImageFilter (itk-rtk, test-only) on the
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mi_grg.core.geometry import Geometry, circular_angles
-from mi_grg.classical import joseph as vp
-from mi_grg.classical.joseph import back_project, forward_project, forward_project_dr
+from mi_grg.core import joseph as vp
+from mi_grg.core.joseph import back_project, forward_project, forward_project_dr
 
 # itk's SWIG wrappers emit hundreds of these on import
 pytestmark = pytest.mark.filterwarnings("ignore:builtin type:DeprecationWarning")

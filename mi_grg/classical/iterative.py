@@ -35,7 +35,10 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
-from mi_grg.classical.joseph import JosephProjector, check_angles, check_projections
+from mi_grg.core.joseph import (JosephProjector, check_angles, check_projections,
+                                forward_project)
+from mi_grg.protocol.heldout import check_stop, run_heldout
+from mi_grg.protocol.search import LogGrid
 
 ORDERS = ("ordered", "random", "angular")
 #: Largest memory (bytes) spent on caching the per-subset column sums V_s.
@@ -210,9 +213,9 @@ def _initial(init, proj, geometry, angles, n_vox):
     if isinstance(init, str):
         if init != "fdk":
             raise ValueError(f"init must be 'zeros', 'fdk' or a volume [x, y, z], got {init!r}")
-        from mi_grg.classical.fdk import fdk_dr
+        from mi_grg.core.fdk import fdk_dr
         return dr.maximum(fdk_dr(proj, geometry, angles).array, 0.0)
-    from mi_grg.classical.joseph import check_volume
+    from mi_grg.core.joseph import check_volume
     return mi.Float(check_volume(init, geometry, "init").reshape(-1))
 
 
@@ -258,7 +261,7 @@ def sart(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, blocksize: 
         progress: tqdm bar on stderr (iteration, elapsed time and the relative residual
             ||b - A x|| / ||b|| accumulated over the subsets just before their updates).
         callback: optional ``f(iteration, volume numpy [x, y, z])`` after every sweep; a
-            true return value ends the run (held-out-view stopping, mi_grg.classical.heldout).
+            true return value ends the run (held-out-view stopping, mi_grg.protocol.heldout).
     Returns:
         float32 [x, y, z] densities.
     """
@@ -320,7 +323,7 @@ def asd_pocs(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, tv_iter
     eng = _SART(p, geometry, a, blocksize, order, seed)
     shape = tuple(geometry.nVoxel)
     if epsilon is None:
-        from mi_grg.classical.fdk import fdk_dr
+        from mi_grg.core.fdk import fdk_dr
         epsilon = 0.2 * eng.residual(fdk_dr(p, geometry, a).array)
     x = _initial(init, p, geometry, a, eng.A.n_vox)
     beta = float(relaxation)
@@ -363,21 +366,40 @@ FIXED_SWEEPS = 10
 #: Cap on sweeps per candidate under ``stop="heldout"``: twice TIGRE's 10. On noisy
 #: sparse views the held-out-view PSNR often keeps rising to the cap long after the 3-D
 #: PSNR peaked; the sweep count then comes from the discrepancy principle
-#: (mi_grg.classical.heldout, step 3), and the cap bounds the noise-level estimate's runs.
+#: (mi_grg.protocol.heldout, step 3), and the cap bounds the noise-level estimate's runs.
 HELDOUT_SWEEP_CAP = 20
-#: ASD-POCS's TV weights tried under ``stop="heldout"``: TIGRE's default 0.002 and
-#: half-decades above it (the TV step as a fraction of the first SART update).
+#: ASD-POCS's TV weights tried first under ``stop="heldout"``: TIGRE's default 0.002 and
+#: half-decades above it (the TV step as a fraction of the first SART update); the search
+#: widens past whichever end wins (``weight_grid``).
 ALPHA_GRID = (0.002, 0.006, 0.02, 0.06)
+#: Values a weight search may add past each end of its grid (half-decades: two decades).
+GRID_EXTEND = 4
 
 
 def _as_grid(value, name: str, default) -> list:
-    """A number, a list of numbers, or None (``default``) as a list of candidates."""
+    """A number, a list of numbers, or None (``default``) as a list of candidates >= 0."""
     vals = list(default) if value is None else (
         list(value) if isinstance(value, (list, tuple)) else [value])
     if not vals or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                            and np.isfinite(v) and v >= 0 for v in vals):
         raise ValueError(f"{name} must be a number >= 0 or a list of them, got {value!r}")
     return [float(v) for v in vals]
+
+
+def weight_grid(value, name: str, default):
+    """What ``run_heldout`` searches for one weight: a number fixes it (a list of one
+    setting); None (``default``) or a list is a ``LogGrid`` that widens past a winning end
+    until its choice is interior (``mi_grg.protocol.search``). A list holding 0 (no
+    regulariser), which no log grid can widen, is tried as given."""
+    vals = _as_grid(value, name, default)
+    if value is not None and not isinstance(value, (list, tuple)):
+        return [{name: vals[0]}]
+    if 0.0 in vals:
+        if len(set(vals)) != len(vals) or len(vals) < 2:
+            raise ValueError(f"{name}: a grid needs at least two distinct values, got "
+                             f"{value!r} (give one number to fix the weight)")
+        return [{name: v} for v in vals]
+    return LogGrid(name, vals, max_extend=GRID_EXTEND)
 
 
 def _one(value, name: str) -> float:
@@ -396,7 +418,7 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
 
     Options (see ``sart``): stop ("heldout": the sweep count is chosen by the discrepancy
     principle with the noise level measured on held-out views, then run on all views,
-    mi_grg.classical.heldout; "none": exactly
+    mi_grg.protocol.heldout; "none": exactly
     n_iter sweeps, the paper's tables), n_iter (under "heldout" a cap, default
     HELDOUT_SWEEP_CAP; under "none" default FIXED_SWEEPS), blocksize (1 = SART; e.g. 20 =
     OS-SART, which moves less per sweep: raise the cap n_iter with it), relaxation (lambda, 1.0), relaxation_decay (0.99 per sweep), nonneg (True),
@@ -410,8 +432,8 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
     if _fixed(stop, holdout_every, oracle, "sart"):
         return sart(case.train, case.geometry, n_iter=FIXED_SWEEPS if n_iter is None
                     else n_iter, progress=progress, **opts)
-    from mi_grg.classical.heldout import run_heldout
     return run_heldout(case, lambda p, g, **kw: sart(p, g, **opts, **kw), [{}],
+                       project=forward_project,
                        max_sweeps=HELDOUT_SWEEP_CAP if n_iter is None else n_iter,
                        name="sart", holdout_every=holdout_every, oracle=oracle,
                        discrepancy=True, progress=progress)
@@ -419,7 +441,6 @@ def reconstruct_sart(case, *, stop: str = "heldout", n_iter=None, blocksize: int
 
 def _fixed(stop, holdout_every, oracle, name) -> bool:
     """True for ``stop="none"``; options that only the held-out protocol reads raise there."""
-    from mi_grg.classical.heldout import check_stop
     if check_stop(stop) == "heldout":
         return False
     given = [k for k, v in (("holdout_every", holdout_every), ("oracle", oracle))
@@ -442,7 +463,8 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
     the ground truth, then run on all views; "none": n_iter sweeps at one alpha), n_iter
     (cap under "heldout", HELDOUT_SWEEP_CAP; FIXED_SWEEPS under "none"), alpha (None =
     ALPHA_GRID under "heldout" and TIGRE's 0.002 under "none"; a number or, under
-    "heldout", a list of candidates), tv_iters (ng, 20), alpha_red (0.95), r_max (0.95),
+    "heldout", a list of candidates; the search widens the list or ALPHA_GRID past a winning
+    end, metrics.json's method_info.search says where it ended), tv_iters (ng, 20), alpha_red (0.95), r_max (0.95),
     epsilon (None = 0.2 x FDK residual), relaxation (1.0), relaxation_decay (0.99),
     blocksize (1), nonneg (True), init (None), order ("angular"), tv_eps (1e-8), seed,
     holdout_every, oracle (as for sart), progress. Returns float32 [x, y, z] (and, under
@@ -456,9 +478,9 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
         a = _one(0.002 if alpha is None else alpha, "alpha")
         return asd_pocs(case.train, case.geometry, n_iter=FIXED_SWEEPS if n_iter is None
                         else n_iter, alpha=a, progress=progress, **opts)
-    from mi_grg.classical.heldout import run_heldout
-    grid = [{"alpha": a} for a in _as_grid(alpha, "alpha", ALPHA_GRID)]
+    grid = weight_grid(alpha, "alpha", ALPHA_GRID)
     return run_heldout(case, lambda p, g, **kw: asd_pocs(p, g, **opts, **kw), grid,
+                       project=forward_project,
                        max_sweeps=HELDOUT_SWEEP_CAP if n_iter is None else n_iter,
                        name="asd-pocs", holdout_every=holdout_every, oracle=oracle,
                        discrepancy=True, progress=progress)

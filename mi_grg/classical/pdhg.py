@@ -4,7 +4,7 @@ Problem (volumes [x, y, z] densities, projections [view, v, u] line integrals):
 
     min_x  1/2 ||A x - b||^2 + lambda TV(x)   subject to 0 <= x (<= upper)
 
-with A the Joseph projector (``mi_grg.classical.joseph``) and TV(x) = sum_i |(D x)_i|_2 the
+with A the Joseph projector (``mi_grg.core.joseph``) and TV(x) = sum_i |(D x)_i|_2 the
 isotropic total variation, D the forward differences of ``gradient`` (zero across the far
 boundary), D^T = -``divergence``. Chambolle & Pock (2011), algorithm 1 with theta = 1, on
 K = [A; mu D], F(y1, y2) = 1/2 ||y1 - b||^2 + (lambda / mu) sum |y2_i|_2, G = the box:
@@ -35,8 +35,11 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
-from mi_grg.classical.joseph import JosephProjector
-from mi_grg.classical.iterative import _check_inputs, _progress, _to_numpy
+from mi_grg.core.joseph import JosephProjector
+from mi_grg.classical.iterative import (_check_inputs, _fixed, _one, _progress, _to_numpy,
+                                        weight_grid)
+from mi_grg.core.joseph import forward_project
+from mi_grg.protocol.heldout import run_heldout
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
 GRAD_NORM = math.sqrt(12.0)
@@ -52,7 +55,8 @@ HELDOUT_ITERATION_CAP = 60
 #: Held-out evaluations every this many iterations: an iteration moves far less than a
 #: SART sweep (one simultaneous update instead of one per view).
 EVAL_EVERY = 5
-#: lam (TV weight / max(A^T b)) tried under ``stop="heldout"``.
+#: lam (TV weight / max(A^T b)) tried first under ``stop="heldout"``; the search widens
+#: past whichever end wins (``mi_grg.classical.iterative.weight_grid``).
 LAM_GRID = (0.001, 0.003, 0.01)
 #: Default lam under ``stop="none"``.
 FIXED_LAM = 0.003
@@ -246,7 +250,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
 
     Options: stop ("heldout": the iteration count and lam are chosen on held-out views by
     gr's rule, evaluated every ``eval_every`` iterations, then run on all views,
-    mi_grg.classical.heldout; "none": n_iter iterations at one lam), n_iter (cap under
+    mi_grg.protocol.heldout; "none": n_iter iterations at one lam), n_iter (cap under
     "heldout", HELDOUT_ITERATION_CAP; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
     under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), gamma
     (primal/dual step balance, DEFAULT_GAMMA), upper (None), nonneg (True), power_iters
@@ -254,8 +258,6 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     ground truth exists), progress. Returns float32 [x, y, z] (and, under "heldout", what
     was decided); unknown options raise.
     """
-    from mi_grg.classical.heldout import run_heldout
-    from mi_grg.classical.iterative import _as_grid, _fixed, _one
     gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
     norms = {}
 
@@ -271,8 +273,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
         return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
                    else n_iter, lam=lm, progress=progress)
-    grid = [{"lam": v} for v in _as_grid(lam, "lam", LAM_GRID)]
-    vol, info = run_heldout(case, run, grid, name="pdhg", eval_every=eval_every,
+    grid = weight_grid(lam, "lam", LAM_GRID)
+    vol, info = run_heldout(case, run, grid, project=forward_project, name="pdhg",
+                            eval_every=eval_every,
                             max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,
                             holdout_every=holdout_every, oracle=oracle, progress=progress)
     info["norm_A"] = {"fitted_views": norms.get(np.asarray(

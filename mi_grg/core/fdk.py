@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
-from mi_grg.classical.joseph import check_angles, check_projections
+from mi_grg.core.joseph import check_angles, check_projections
 
 FILTERS = ("ram-lak", "shepp-logan", "cosine", "hann")
 
@@ -184,13 +184,3 @@ def fdk(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> np.nd
 
 fbp = fdk  # the parallel-beam case is selected by geometry.mode
 
-
-def reconstruct_fdk(case, *, filter: str = "ram-lak"):
-    """The ``--method fdk`` entry point: FDK/FBP of ``case.train`` in ``case.geometry``.
-
-    Options:
-        filter: ramp apodisation, one of "ram-lak" (default), "shepp-logan", "cosine",
-            "hann".
-    Returns float32 [x, y, z]. Unknown options raise TypeError (Python keyword rules).
-    """
-    return fdk(case.train, case.geometry, filter=filter)

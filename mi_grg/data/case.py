@@ -44,24 +44,3 @@ class Case:
             raise ValueError("this case has no test views")
         return self.geometry.with_angles(self.test_angles)
 
-
-def holdout_split(n_views: int, holdout_every: int) -> tuple:
-    """(fit, held) view indices [n - k], [k]: one view in every ``holdout_every`` is held out
-    for decisions (early stopping, choosing a setting) and never fitted while it decides;
-    0 holds out none. The one formula gr, r2 and the classical methods share.
-
-    The k = ceil(n / holdout_every) held-out views sit at the middles of k equal blocks of
-    the view list, floor((j + 1/2) n / k): evenly spread, so that the widest gap the fitted
-    views leave is the narrowest any k held-out views allow (two steps while k < n / 2,
-    when neither end of the arc is held out). Why not views 0, n, 2n, ... as before: on a
-    full circle the last of those (24 of 25 with n = 8) is view 0's neighbour, a three-step
-    gap; on the shell case (gr, 25 views) holding out {0, 8, 16, 24} cost 1.05 dB against
-    holding out none, {0, 13} 1.1 dB, {0} alone 0.5 dB, and {3, 9, 15, 21} nothing
-    (docs/benchmarks.md, "Every view counts")."""
-    n, every = int(n_views), int(holdout_every)
-    if every < 0:
-        raise ValueError(f"holdout_every must be >= 0 (0: no held-out views), got {every}")
-    k = -(-n // every) if every else 0
-    held = np.zeros(n, bool)
-    held[(np.arange(k) * 2 + 1) * n // (2 * k) if k else []] = True
-    return np.flatnonzero(~held), np.flatnonzero(held)

@@ -55,7 +55,7 @@ def data_range(case, gt: np.ndarray) -> tuple:
 
 def fdk_scale(proj: np.ndarray, geometry) -> float:
     """A robust maximum (``SCALE_PERCENTILE``) of the FDK of ``proj`` in ``geometry``."""
-    from mi_grg.classical.fdk import fdk
+    from mi_grg.core.fdk import fdk
     vol = fdk(proj, geometry)
     s = float(np.percentile(vol, SCALE_PERCENTILE))
     if not np.isfinite(s) or s <= 0:

@@ -386,7 +386,7 @@ def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0, no
     at iterations >= ``start`` (the end of densification) are judged; the earlier ones inform
     the noise margin."""
     from mi_grg.training.config import TrainConfig
-    from mi_grg.training.early_stop import EarlyStopper
+    from mi_grg.protocol.early_stop import EarlyStopper
     cfg = TrainConfig()
     st = EarlyStopper(drop=cfg.stop_drop if drop is None else drop,
                       patience=cfg.stop_patience if patience is None else patience,
@@ -816,7 +816,7 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
             md += ["SART, ASD-POCS and PDHG rows choose their sweeps (and ASD-POCS's TV "
                    "weight alpha, PDHG's lam) without the ground truth on the training views "
                    "with one in 8 held out, then run the choice on all views "
-                   "(mi_grg.classical.heldout): PDHG by gr's rule on the held-out PSNR, SART "
+                   "(mi_grg.protocol.heldout): PDHG by gr's rule on the held-out PSNR, SART "
                    "and ASD-POCS by the discrepancy principle (the first sweep whose fitted-"
                    "view residual reaches the noise level measured on the held-out views), "
                    "the TV weights by held-out PSNR; the \"fixed\" rows run "

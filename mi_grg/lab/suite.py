@@ -23,7 +23,7 @@ CASE_FIELDS = ("name", "category", "source", "views", "test_views", "n", "det", 
 TRAINED = ("r2", "gr")               # methods configured by mi_grg.training.config.TrainConfig
 CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve", "pdhg": "pdhg-curve"}
 #: Table 1's second row for the iterative classical methods: the paper's fixed sweep count
-#: (their default stops on held-out views, mi_grg.classical.heldout).
+#: (their default stops on held-out views, mi_grg.protocol.heldout).
 FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"},
               "asd-pocs": {"n_iter": 10, "stop": "none"}}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)

@@ -9,7 +9,7 @@ of several small drops also stops the run; the caller keeps a state (see below).
 iterations rather than 60 in 30k) the held-out PSNR still rises late in training and
 wobbles around that trend by about the margin itself, so a single dip ended runs that
 recovered at the next evaluation (docs/benchmarks.md, "Measurements behind defaults").
-TrainConfig's default is 2.
+The default is 2 (``STOP_RULE``).
 
 Which state to keep (``TrainConfig.keep_state``): the same wobble makes "the state with the
 highest held-out PSNR" an early state by chance, with a worse 3-D PSNR than a later state
@@ -39,6 +39,29 @@ from dataclasses import dataclass, field
 
 #: Which state a run keeps (``TrainConfig.keep_state``, ``EarlyStopper.keep``).
 KEEP_STATES = ("latest", "best")
+
+
+@dataclass(frozen=True)
+class StopRule:
+    """The stop rule's settings, shared by every method (gr / r2 take theirs from
+    ``TrainConfig``, whose defaults are these): hold out one view in ``holdout_every``;
+    stop when the held-out PSNR lies more than max(``drop`` x best, ``noise`` x its
+    scatter) below its best at ``patience`` evaluations in a row; keep the ``keep``
+    state."""
+
+    holdout_every: int = 8
+    drop: float = 0.005
+    patience: int = 2
+    noise: float = 3.0
+    keep: str = "latest"
+
+    def stopper(self, label: str = "held-out PSNR") -> "EarlyStopper":
+        return EarlyStopper(drop=self.drop, patience=self.patience, noise=self.noise,
+                            keep=self.keep, label=label)
+
+
+#: The defaults (docstrings above and in TrainConfig say why each).
+STOP_RULE = StopRule()
 
 
 @dataclass

@@ -1,26 +1,25 @@
-"""Held-out-view stopping and tuning for the iterative classical methods (SART, OS-SART,
-ASD-POCS, PDHG): decisions on held-out training views, then the chosen setting on every view.
+"""Decide on the fitted views, then run the decision on all views: held-out-view stopping
+and tuning for the iterative classical methods (SART, ASD-POCS, PDHG).
 
 Protocol (``run_heldout``), never looking at the ground truth:
 
-1. Split the training views with ``mi_grg.data.case.holdout_split`` (one view in every
-   ``holdout_every`` held out, evenly spread; TrainConfig's default 8, as gr/r2).
-2. For every candidate setting of a small grid (e.g. ASD-POCS's TV weight alpha, PDHG's
-   lambda), run the method on the fitted views only; after every sweep (every
+1. Split the training views with ``mi_grg.protocol.split.decision_split`` (one view in
+   every ``holdout_every`` held out, evenly spread; ``STOP_RULE``'s 8, as gr/r2).
+2. For every candidate setting (a list, or a ``LogGrid`` of one weight, e.g. ASD-POCS's
+   TV weight alpha, PDHG's lam, which widens past a winning end: ``mi_grg.protocol.search``),
+   run the method on the fitted views only; after every sweep (every
    ``eval_every`` iterations) project the volume onto the held-out views and feed their
-   PSNR to an ``EarlyStopper`` with TrainConfig's drop / patience / noise / keep (the rule object
+   PSNR to an ``EarlyStopper`` with ``STOP_RULE``'s drop / patience / noise / keep (the rule
    gr and r2 use). It ends the run; its ``kept_iteration`` is that setting's sweep count.
 3. With ``discrepancy`` (SART and ASD-POCS), the sweep count comes instead from the
    discrepancy principle (Morozov): the first sweep whose mean squared residual on the
    fitted views is at most the noise level, and the noise level is estimated on the
-   held-out views as the lowest mean squared held-out residual any decision run reached
-   (their noise is independent of the fit, so no state predicts them better on average;
-   the estimate errs high, which stops early rather than late). A candidate whose residual
+   held-out views (``mi_grg.protocol.discrepancy``). A candidate whose residual
    never reaches it keeps the EarlyStopper's sweep.
 4. Choose the setting whose kept state has the highest held-out PSNR.
 5. Run the chosen setting for the chosen sweep count on ALL training views (the held-out
    ones included) and return that volume: the decision used held-out views, the result
-   uses every view (issue 26). A sweep over 25 views and one over 21 do about the same
+   uses every view. A sweep over 25 views and one over 21 do about the same
    per view, so the count transfers.
 
 Why step 3: the held-out views measure the error of predicting projections, not the 3-D
@@ -41,8 +40,15 @@ its time (``oracle_seconds``) is left out of metrics.json's "seconds"
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
+
+from mi_grg.evaluation.metrics import psnr_3d, psnr_proj
+from mi_grg.protocol.discrepancy import discrepancy_stop, mse, noise_level
+from mi_grg.protocol.early_stop import STOP_RULE, StopRule
+from mi_grg.protocol.search import LogGrid
+from mi_grg.protocol.split import decision_split
 
 #: ``stop`` option values: "heldout" (this protocol) or "none" (a fixed number of sweeps).
 STOP_MODES = ("heldout", "none")
@@ -53,11 +59,10 @@ ORACLE_LABEL = "oracle: best sweep chosen with the ground truth; decides nothing
 
 
 def stop_rule() -> dict:
-    """gr's and r2's rule, from TrainConfig's defaults (one place for its numbers)."""
-    from mi_grg.training.config import TrainConfig
-    c = TrainConfig()
-    return {"holdout_every": c.holdout_every, "drop": c.stop_drop,
-            "patience": c.stop_patience, "noise": c.stop_noise, "keep": c.keep_state}
+    """The rule's settings as metrics.json records them."""
+    r = STOP_RULE
+    return {"holdout_every": r.holdout_every, "drop": r.drop, "patience": r.patience,
+            "noise": r.noise, "keep": r.keep}
 
 
 def check_stop(stop: str) -> str:
@@ -66,118 +71,110 @@ def check_stop(stop: str) -> str:
     return stop
 
 
-def _mse(pred: np.ndarray, target: np.ndarray) -> float:
-    """Mean squared residual of projections [view, v, u] (line-integral units squared)."""
-    return float(np.mean(np.square(pred.astype(np.float64) - target)))
+@dataclass
+class _Decision:
+    """The fitted / held-out views of one case and what the decision runs need."""
+    case: object
+    project: object        # (volume [x, y, z], geometry, angles) -> [view, v, u]
+    fit: np.ndarray
+    held: np.ndarray
+    eval_every: int
+    discrepancy: bool
+
+    def __post_init__(self):
+        geo = self.case.geometry
+        self.angles = np.asarray(geo.angles, np.float64)
+        self.geo_fit = geo.with_angles(self.angles[self.fit])
+        self.target = self.case.train[self.held]
+        self.fit_data = self.case.train[self.fit]
 
 
-def _split(case, holdout_every: int, name: str):
-    from mi_grg.data.case import holdout_split
-    n = int(case.geometry.n_views)
-    fit, held = holdout_split(n, holdout_every)
-    if len(held) == 0 or len(fit) == 0:
-        raise ValueError(f"{name}: stop='heldout' needs held-out views, but {n} training "
-                         f"view(s) with holdout_every={holdout_every} leave "
-                         f"{len(fit)} to fit and {len(held)} to hold out (need >= 2 views); "
-                         "pass --option stop=none (and n_iter) for a fixed sweep count")
-    return fit, held
+def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: int,
+                  name: str, progress: bool) -> dict:
+    """One candidate on the fitted views, judged after every ``eval_every`` sweeps."""
+    stopper = rule.stopper()
+    last, residuals = [0], []
+    geo = d.case.geometry
+
+    def judge(it, vol):
+        sweep = it + 1
+        last[0] = sweep
+        if sweep % d.eval_every:
+            return False
+        pred = d.project(vol, geo, d.angles[d.held])
+        if d.discrepancy:     # [sweep, held-out MSE, fitted-view MSE]
+            residuals.append([sweep, mse(pred, d.target),
+                              mse(d.project(vol, d.geo_fit, d.geo_fit.angles), d.fit_data)])
+        return stopper.update(sweep, psnr_proj(pred, d.target)) == "stop"
+
+    t0 = time.perf_counter()
+    run(d.fit_data, d.geo_fit, n_iter=int(max_sweeps), callback=judge, progress=progress,
+        **setting)
+    if stopper.kept_iteration < 1:
+        raise ValueError(f"{name}: no held-out evaluation in {last[0]} iteration(s) "
+                         f"(eval_every={d.eval_every}); raise n_iter")
+    values = dict(stopper.history)
+    c = {"setting": dict(setting), "sweeps_run": last[0],
+         "kept_sweep": stopper.kept_iteration,
+         "heldout_psnr": values[stopper.kept_iteration],
+         "best_heldout_psnr": stopper.best, "best_sweep": stopper.best_iteration,
+         "stopped_because": stopper.reason or (
+             f"ran to {last[0]} iteration(s) (the cap n_iter={max_sweeps} or the "
+             "method's own convergence test) without the rule stopping it"),
+         "history": [list(h) for h in stopper.history],
+         "seconds": time.perf_counter() - t0}
+    if d.discrepancy:
+        c["residuals"] = residuals
+        c["rule_sweep"] = c["kept_sweep"]
+    return c
 
 
-def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every: int = 1,
-                holdout_every: int | None = None, oracle=None, discrepancy: bool = False,
-                progress: bool = True):
-    """The protocol of the module docstring for one method.
-
-    Args:
-        case: the Case (``train`` [view, v, u], ``geometry``, optional ``vol_gt``).
-        run: ``run(proj, geometry, n_iter=, callback=, progress=, **setting) -> [x, y, z]``;
-            it calls ``callback(iteration, volume)`` after every iteration and stops when
-            the callback returns True.
-        grid: candidate settings (dicts of options for ``run``), in order of preference
-            on ties.
-        max_sweeps: cap on iterations per candidate (the rule normally stops earlier).
-        name: the method's name for messages.
-        eval_every: iterations between held-out evaluations (1 for a SART sweep).
-        holdout_every: None = TrainConfig's default (gr's and r2's).
-        oracle: score 3-D PSNR of the final run's sweeps (None: when a ground truth exists).
-        discrepancy: the sweep count by the discrepancy principle with the noise level
-            estimated on the held-out views (step 3; for semi-convergent methods).
-    Returns:
-        (volume [x, y, z] float32, info dict for metrics.json).
-    """
-    rule = stop_rule()
-    if holdout_every is not None:
-        rule["holdout_every"] = int(holdout_every)
-    if int(max_sweeps) < 1:
-        raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
-    if int(eval_every) < 1:
-        raise ValueError(f"eval_every must be >= 1, got {eval_every}")
-    if not grid:
-        raise ValueError(f"{name}: the grid of settings is empty")
-    from mi_grg.classical.joseph import forward_project
-    from mi_grg.evaluation.metrics import psnr_proj
-    from mi_grg.training.early_stop import EarlyStopper
-    fit, held = _split(case, rule["holdout_every"], name)
-    geo = case.geometry
-    angles = np.asarray(geo.angles, np.float64)
-    geo_fit = geo.with_angles(angles[fit])
-    target = case.train[held]
-    fit_data = case.train[fit]
-    t_start = time.perf_counter()
-    candidates = []
-    for setting in grid:
-        stopper = EarlyStopper(drop=rule["drop"], patience=rule["patience"],
-                               noise=rule["noise"], keep=rule["keep"], label="held-out PSNR")
-        last, residuals = [0], []
-
-        def judge(it, vol, stopper=stopper, last=last, residuals=residuals):
-            sweep = it + 1
-            last[0] = sweep
-            if sweep % eval_every:
-                return False
-            pred = forward_project(vol, geo, angles[held])
-            if discrepancy:     # [sweep, held-out MSE, fitted-view MSE]
-                residuals.append([sweep, _mse(pred, target),
-                                  _mse(forward_project(vol, geo_fit), fit_data)])
-            return stopper.update(sweep, psnr_proj(pred, target)) == "stop"
-
-        t0 = time.perf_counter()
-        run(fit_data, geo_fit, n_iter=int(max_sweeps), callback=judge,
-            progress=progress, **setting)
-        if stopper.kept_iteration < 1:
-            raise ValueError(f"{name}: no held-out evaluation in {last[0]} iteration(s) "
-                             f"(eval_every={eval_every}); raise n_iter")
-        values = dict(stopper.history)
-        candidates.append({
-            "setting": dict(setting), "sweeps_run": last[0],
-            "kept_sweep": stopper.kept_iteration,
-            "heldout_psnr": values[stopper.kept_iteration],
-            "best_heldout_psnr": stopper.best, "best_sweep": stopper.best_iteration,
-            "stopped_because": stopper.reason or (
-                f"ran to {last[0]} iteration(s) (the cap n_iter={max_sweeps} or the "
-                "method's own convergence test) without the rule stopping it"),
-            "history": [list(h) for h in stopper.history],
-            "seconds": time.perf_counter() - t0})
-        if discrepancy:
-            candidates[-1]["residuals"] = residuals
+def _choose(candidates: list, discrepancy: bool):
+    """(index of the chosen candidate, noise level or None). With ``discrepancy`` each
+    candidate's sweep becomes its discrepancy sweep where its residual reaches the noise
+    level (re-judged whenever candidates are added: the level is a minimum over all)."""
     noise = None
     if discrepancy:
-        noise = min(h for c in candidates for _, h, _ in c["residuals"])
+        noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
         for c in candidates:
-            k = next((s for s, _, f in c["residuals"] if f <= noise), None)
+            k = discrepancy_stop([(s, f) for s, _, f in c["residuals"]], noise)
             c["discrepancy_sweep"] = k
-            if k is not None:
-                c["kept_sweep"] = k
-                c["heldout_psnr"] = dict(c["history"])[k]
-    chosen = max(range(len(candidates)), key=lambda i: (candidates[i]["heldout_psnr"], -i))
-    pick = candidates[chosen]
-    decision_seconds = time.perf_counter() - t_start
+            c["kept_sweep"] = k if k is not None else c["rule_sweep"]
+            c["heldout_psnr"] = dict(map(tuple, c["history"]))[c["kept_sweep"]]
+    order = sorted(range(len(candidates)), key=lambda i: _sort_key(candidates[i]["setting"]))
+    best = max(order, key=lambda i: (candidates[i]["heldout_psnr"], -order.index(i)))
+    return best, noise
 
-    # Final run: the chosen setting and sweep count on every view.
+
+def _sort_key(setting: dict):
+    """Candidates compare in the order of their values (ties go to the first)."""
+    return tuple(setting[k] for k in sorted(setting))
+
+
+def _decide(d: _Decision, run, grid, rule, max_sweeps, name, progress):
+    """Every candidate of ``grid`` (a list of settings or a ``LogGrid``), widening a
+    LogGrid past a winning end. Returns (candidates, chosen index, noise, search record)."""
+    search = grid if isinstance(grid, LogGrid) else None
+    pending = search.settings() if search else list(grid)
+    candidates = []
+    while pending:
+        for setting in pending:
+            candidates.append(_decision_run(d, run, setting, rule, max_sweeps, name,
+                                            progress))
+        chosen, noise = _choose(candidates, d.discrepancy)
+        winner = candidates[chosen]["setting"].get(search.name) if search else None
+        nxt = search.next_value(winner) if search else None
+        pending = [] if nxt is None else [{search.name: nxt}]
+    record = search.record(candidates[chosen]["setting"][search.name]) if search else None
+    return candidates, chosen, noise, record
+
+
+def _final_run(case, run, pick: dict, max_sweeps: int, eval_every: int, scoring: bool,
+               progress: bool):
+    """The chosen setting for its sweep count on every view; with ``scoring`` (the oracle)
+    the run goes on past it, scoring the 3-D PSNR of each sweep. Returns (volume at the
+    chosen sweep, its seconds without scoring, total seconds, oracle curve)."""
     k = int(pick["kept_sweep"])
-    scoring = oracle if oracle is not None else case.vol_gt is not None
-    if scoring and case.vol_gt is None:
-        raise ValueError(f"{name}: oracle=True needs a ground truth (vol_gt.npy)")
     kept, curve, spent, t_kept = {}, [], [0.0], [None]
     t0 = time.perf_counter()
 
@@ -188,7 +185,6 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
             t_kept[0] = time.perf_counter() - t0 - spent[0]
         if not scoring:
             return sweep >= k
-        from mi_grg.evaluation.metrics import psnr_3d
         ts = time.perf_counter()
         if sweep % eval_every == 0 or sweep == k:
             curve.append((sweep, float(psnr_3d(vol, case.vol_gt))))
@@ -200,42 +196,98 @@ def run_heldout(case, run, grid: list, *, max_sweeps: int, name: str, eval_every
         return since >= ORACLE_PATIENCE * eval_every
 
     cap = int(max_sweeps) if scoring else k
-    vol = run(case.train, geo, n_iter=max(k, cap), callback=final, progress=progress,
-              **pick["setting"])
-    total_final = time.perf_counter() - t0
+    vol = run(case.train, case.geometry, n_iter=max(k, cap), callback=final,
+              progress=progress, **pick["setting"])
+    total = time.perf_counter() - t0
     if "vol" not in kept:       # the method's own convergence test ended the run first
-        kept["vol"], t_kept[0] = vol, total_final - spent[0]
-    final_seconds = t_kept[0]
+        kept["vol"], t_kept[0] = vol, total - spent[0]
+    return kept["vol"], t_kept[0], total, curve
+
+
+def _oracle_info(curve: list, k: int) -> dict:
+    at = dict(curve)
+    best_sweep, best = max(curve, key=lambda c: (c[1], -c[0]))
+    return {"label": ORACLE_LABEL, "best_sweep": best_sweep, "psnr_3d_best": best,
+            "psnr_3d_chosen": at.get(k), "gap_db": best - at[k] if k in at else None,
+            "curve": [list(c) for c in curve]}
+
+
+def _why(pick: dict, held: list, n_candidates: int, noise, k: int, n_views: int) -> str:
+    state = (f"where the fitted views' mean squared residual first reached the noise level "
+             f"{noise:.4g} (the lowest held-out one)" if pick.get("discrepancy_sweep")
+             else "the rule kept")
+    return (f"highest held-out-view PSNR ({pick['heldout_psnr']:.3f} dB on views {held}) "
+            f"among {n_candidates} setting(s), at the state {state} (sweep {k}); then run "
+            f"on all {n_views} views for {k} sweep(s)")
+
+
+def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
+                eval_every: int = 1, holdout_every: int | None = None, oracle=None,
+                discrepancy: bool = False, progress: bool = True):
+    """The protocol of the module docstring for one method.
+
+    Args:
+        case: the Case (``train`` [view, v, u], ``geometry``, optional ``vol_gt``).
+        run: ``run(proj, geometry, n_iter=, callback=, progress=, **setting) -> [x, y, z]``;
+            it calls ``callback(iteration, volume)`` after every iteration and stops when
+            the callback returns True.
+        grid: candidate settings (a list of option dicts for ``run``, ties going to the
+            first in value order) or a ``LogGrid`` of one weight.
+        project: ``project(volume [x, y, z], geometry, angles) -> [view, v, u]``, the
+            method's own forward model (predictions of the held-out views).
+        max_sweeps: cap on iterations per candidate (the rule normally stops earlier).
+        name: the method's name for messages.
+        eval_every: iterations between held-out evaluations (1 for a SART sweep).
+        holdout_every: None = ``STOP_RULE``'s (gr's and r2's).
+        oracle: score 3-D PSNR of the final run's sweeps (None: when a ground truth exists).
+        discrepancy: the sweep count by the discrepancy principle with the noise level
+            estimated on the held-out views (step 3; for semi-convergent methods).
+    Returns:
+        (volume [x, y, z] float32, info dict for metrics.json).
+    """
+    rule = STOP_RULE if holdout_every is None else StopRule(holdout_every=int(holdout_every))
+    if int(max_sweeps) < 1:
+        raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
+    if int(eval_every) < 1:
+        raise ValueError(f"eval_every must be >= 1, got {eval_every}")
+    if not isinstance(grid, LogGrid) and not grid:
+        raise ValueError(f"{name}: the grid of settings is empty")
+    scoring = oracle if oracle is not None else case.vol_gt is not None
+    if scoring and case.vol_gt is None:
+        raise ValueError(f"{name}: oracle=True needs a ground truth (vol_gt.npy)")
+    fit, held = decision_split(case.geometry.n_views, rule.holdout_every, name)
+    d = _Decision(case, project, fit, held, int(eval_every), discrepancy)
+    t_start = time.perf_counter()
+    candidates, chosen, noise, search = _decide(d, run, grid, rule, max_sweeps, name,
+                                                progress)
+    pick = candidates[chosen]
+    decision_seconds = time.perf_counter() - t_start
+    k = int(pick["kept_sweep"])
+    vol, final_seconds, total_final, curve = _final_run(case, run, pick, max_sweeps,
+                                                        int(eval_every), scoring, progress)
+    n = int(case.geometry.n_views)
     info = {
         "protocol": "heldout",
-        "stop_rule": {**rule, "eval_every": int(eval_every),
-                      "rule": "EarlyStopper (mi_grg.training.early_stop), as gr/r2" + (
+        "stop_rule": {**stop_rule(), "holdout_every": rule.holdout_every,
+                      "eval_every": int(eval_every),
+                      "rule": "EarlyStopper (mi_grg.protocol.early_stop), as gr/r2" + (
                           "; sweeps by the discrepancy principle" if discrepancy else "")},
         "decision_views": fit.tolist(), "held_out_views": held.tolist(),
-        "final_views": list(range(int(geo.n_views))),
+        "final_views": list(range(n)),
         "candidates": candidates,
         "chosen": {"setting": pick["setting"], "sweeps": k,
                    "heldout_psnr": pick["heldout_psnr"]},
-        "why": (f"highest held-out-view PSNR ({pick['heldout_psnr']:.3f} dB on views "
-                f"{held.tolist()}) among {len(candidates)} setting(s), at the state "
-                + (f"where the fitted views' mean squared residual first reached the "
-                   f"noise level {noise:.4g} (the lowest held-out one)"
-                   if pick.get("discrepancy_sweep") else "the rule kept")
-                + f" (sweep {k}); then run on all {int(geo.n_views)} views for {k} "
-                "sweep(s)"),
+        "why": _why(pick, held.tolist(), len(candidates), noise, k, n),
         "decision_seconds": decision_seconds, "final_seconds": final_seconds,
         "oracle_seconds": total_final - final_seconds,
     }
+    if search is not None:
+        info["search"] = search
     if discrepancy:
         info["discrepancy"] = {
             "noise_mse": noise, "tau": 1.0,
             "noise_from": "lowest mean squared held-out-view residual over the decision runs",
             "sweeps": {str(i): c["discrepancy_sweep"] for i, c in enumerate(candidates)}}
     if scoring and curve:
-        at = dict(curve)
-        best_sweep, best = max(curve, key=lambda c: (c[1], -c[0]))
-        info["oracle"] = {"label": ORACLE_LABEL, "best_sweep": best_sweep,
-                          "psnr_3d_best": best, "psnr_3d_chosen": at.get(k),
-                          "gap_db": best - at[k] if k in at else None,
-                          "curve": [list(c) for c in curve]}
-    return kept["vol"], info
+        info["oracle"] = _oracle_info(curve, k)
+    return vol, info

@@ -1,8 +1,8 @@
-"""Which training views decide and which ones train, at each iteration (issue 26).
+"""Which training views decide and which ones train, at each iteration.
 
 One training view in every ``holdout_every`` is held out (evenly spread:
-``mi_grg.data.case.holdout_split``): their projection error is the early-stop
-rule's signal (``mi_grg.training.early_stop``). With sparse views every view is also worth
+``mi_grg.protocol.split.holdout_split``): their projection error is the early-stop
+rule's signal (``mi_grg.protocol.early_stop``). With sparse views every view is also worth
 training on (measured: docs/benchmarks.md, "Every view counts"), so the held-out views
 join training once no decision needs them any more:
 
@@ -39,7 +39,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mi_grg.data.case import holdout_split
+from mi_grg.protocol.split import decision_split, holdout_split
 
 
 class Stop(NamedTuple):
@@ -77,13 +77,13 @@ class ViewProtocol:
                              f"{self.holdout_until}")
         if self.n_views < 1 or self.iterations < 1 or self.eval_every < 1:
             raise ValueError("n_views, iterations and eval_every must be >= 1")
-        if len(self.held) == self.n_views:
-            raise ValueError("holdout_every leaves no training views")
+        if self.holdout_every:
+            decision_split(self.n_views, self.holdout_every, "the stop rule")
 
     # ------------------------------------------------------------------ the view sets
     @cached_property       # asked at every iteration; the settings are frozen
     def held(self) -> np.ndarray:
-        """Views held out for decisions, [k] int (``mi_grg.data.case.holdout_split``)."""
+        """Views held out for decisions, [k] int (``mi_grg.protocol.split.holdout_split``)."""
         return holdout_split(self.n_views, self.holdout_every)[1]
 
     @cached_property

@@ -23,7 +23,7 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, fields
 
-from mi_grg.training.early_stop import KEEP_STATES
+from mi_grg.protocol.early_stop import KEEP_STATES, STOP_RULE
 
 #: Fields whose None means "automatic" (each field's comment says what is chosen). Records
 #: written before they were optional spell that 0 (``upgrade_config_dict``).
@@ -41,7 +41,10 @@ PRESETS = {
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
-               "holdout_catch_up": False, "stop_noise": 0.0}
+               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
+
+#: The volumes De-Init can start from (``TrainConfig.init``).
+INIT_VOLUMES = ("fdk", "pdhg")
 
 #: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. 3.5 instead of the
@@ -84,7 +87,7 @@ ITERATION_RULES = {
 }
 
 
-#: Options of the held-out window (mi_grg.training.views): without held-out views
+#: Options of the held-out window (mi_grg.protocol.views): without held-out views
 #: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
 WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
 
@@ -102,6 +105,10 @@ class TrainConfig:
     extent: float | None = None    # Gaussian support in std devs; None: TRAIN_EXTENT
                                    # (3.5; 4.5 before 2026-11-27, the projector's default)
     # --- De-Init (Sec. 3.3.1)
+    init: str = "fdk"              # the volume De-Init samples: "fdk" (the paper's FDK of
+                                   # the fitted views) or "pdhg" (PDHG's TV reconstruction
+                                   # of the fitted views, its weight and iterations chosen
+                                   # on their own held-out views: mi_grg.protocol.heldout)
     n_points: int = 50000          # M, capped by the number of candidate voxels
     init_tau: float = 0.001        # threshold, fraction of the denoised volume's max
     sigma_d: float = 3.0           # denoising filter std in voxels of a sigma_d_grid grid;
@@ -153,23 +160,23 @@ class TrainConfig:
     lr_rotation: float = 1e-3
     lr_final_ratio: float = 0.1
     # --- early stopping without ground truth
-    holdout_every: int = 8         # hold out every n-th training view; 0: none
+    holdout_every: int = STOP_RULE.holdout_every  # hold out every n-th training view; 0: none
     holdout_until: float = 0.667   # ... for this fraction of the iterations (the stop rule
                                    # decides only then), then train on every view; 1: held
-                                   # out all run (before issue 26; mi_grg.training.views).
+                                   # out all run (mi_grg.protocol.views).
                                    # Why 2/3: the shortest window in which the rule can
                                    # still fire after densification (ends at 1/2)
     holdout_catch_up: bool = False # after that, draw the held-out views more often until
                                    # every view's expected draws are equal (candidate)
     eval_every: int = 500
-    stop_drop: float = 0.005       # stop when held-out PSNR drops by more than this fraction
-    stop_patience: int = 2         # ... below its best at this many evaluations in a row
-                                   # (1: the paper's rule; why 2: mi_grg.training.early_stop)
-    stop_noise: float = 3.0        # ... and by more than this many times the held-out
+    stop_drop: float = STOP_RULE.drop  # stop when held-out PSNR drops by more than this fraction
+    stop_patience: int = STOP_RULE.patience  # ... below its best at this many evaluations in a row
+                                   # (1: the paper's rule; why 2: mi_grg.protocol.early_stop)
+    stop_noise: float = STOP_RULE.noise  # ... and by more than this many times the held-out
                                    # PSNR's own scatter between evaluations (0: stop_drop
-                                   # alone; why: mi_grg.training.early_stop)
-    keep_state: str = "latest"     # state kept: "latest" within the stop margin of the best
-                                   # held-out PSNR, or "best" (why: mi_grg.training.early_stop)
+                                   # alone; why: mi_grg.protocol.early_stop)
+    keep_state: str = STOP_RULE.keep  # state kept: "latest" within the stop margin of the best
+                                   # held-out PSNR, or "best" (why: mi_grg.protocol.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
@@ -213,6 +220,9 @@ class TrainConfig:
         if not 0.0 <= self.holdout_until <= 1.0:
             raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
                               f"{self.holdout_until}")
+        if self.init not in INIT_VOLUMES:
+            raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
+                              f"{self.init!r}")
         if self.keep_state not in KEEP_STATES:
             raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                               f"got {self.keep_state!r}")
@@ -419,8 +429,8 @@ def _margin_inert(m: dict, used: dict, now: dict) -> bool:
 
 def _split_changed(m: dict) -> bool:
     """Whether a finished run recorded held-out views other than the ones
-    ``mi_grg.data.case.holdout_split`` gives its view count and ``holdout_every`` today."""
-    from mi_grg.data.case import holdout_split
+    ``mi_grg.protocol.split.holdout_split`` gives its view count and ``holdout_every`` today."""
+    from mi_grg.protocol.split import holdout_split
     info = m.get("method_info") or {}
     held, n = info.get("held_out_views"), m.get("n_train_views")
     # gr / r2 record their config; the classical methods their stop rule

@@ -7,7 +7,7 @@
     (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
     early stop, keeping the latest state within the stop margin of the best (or the best:
     ``keep_state``) -> once the stop rule is done, every view trains to the end
-    (``mi_grg.training.views``).
+    (``mi_grg.protocol.views``).
 
 The iteration count comes from ``iteration_rule`` (or ``iterations``), or is planned to a
 wall-clock ``time_budget`` (``mi_grg.training.budget``); the schedule scales with it.
@@ -39,8 +39,10 @@ from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_
 from mi_grg.training.config import (ITERATION_RULE, ITERATION_RULES, TRAIN_EXTENT, TrainConfig,
                                     make_config)
 from mi_grg.training.densify import densify_iterations
-from mi_grg.training.early_stop import EarlyStopper
-from mi_grg.training.views import ViewProtocol, stop_from
+from mi_grg.classical.pdhg import reconstruct_pdhg
+from mi_grg.core.fdk import fdk
+from mi_grg.protocol.early_stop import EarlyStopper
+from mi_grg.protocol.views import ViewProtocol, stop_from
 
 # The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
 # we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
@@ -350,12 +352,18 @@ class Trainer:
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
-        from mi_grg.classical.fdk import fdk
         from mi_grg.training.init import init_gaussians, sigma_d_voxels
         geo, cfg = self.case.geometry, self.cfg
         fit_geo = geo.with_angles(geo.angles[self.fit_idx])
-        vol = fdk(self.case.train[self.fit_idx], fit_geo)
-        info = {}
+        info = {"volume": cfg.init}
+        if cfg.init == "pdhg":
+            # the fitted views only: the held-out ones still decide this run's stop
+            fitted = Case(geometry=fit_geo, train=self.case.train[self.fit_idx])
+            vol, decided = reconstruct_pdhg(fitted, oracle=False, progress=False)
+            info["pdhg"] = {"chosen": decided["chosen"], "search": decided.get("search"),
+                            "seconds": decided["decision_seconds"] + decided["final_seconds"]}
+        else:
+            vol = fdk(self.case.train[self.fit_idx], fit_geo)
         # The signed FDK is filtered: clipping first would lift the air's zero-mean noise to
         # a positive mean, and after the filter every voxel of the cube would pass tau.
         sigma = sigma_d_voxels(cfg.sigma_d, geo.nVoxel, cfg.sigma_d_grid)
@@ -623,7 +631,7 @@ class Trainer:
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
                    "views": self.views.record(st.iteration, stop, self.stopper.history,
                                               self.stopper.reason, returned),
-                   # the margin the last decision used (mi_grg.training.early_stop)
+                   # the margin the last decision used (mi_grg.protocol.early_stop)
                    "stop_margin": {"drop": cfg.stop_drop, "noise": cfg.stop_noise,
                                    "scatter_db": self.stopper.scatter(),
                                    "margin_db": (self.stopper.margin()
