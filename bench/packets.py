@@ -3,7 +3,7 @@
     .venv/bin/python bench/packets.py            # gr 64^3 state of bench/train_step.py
     .venv/bin/python bench/packets.py --reps 1   # quicker
 
-Packets (``mi_grg.core.projector._packets``, LLVM only): the projector's primal pass adds
+Packets (``mi_grg.core.lanes.use_packets``, LLVM only): the projector's primal pass adds
 PACKET pixels of a row per store, the backward adds a lane's sums to its record with one
 store, each lane reads its record with one packet load; the voxelizer's column lanes add
 PACKET voxels along z per store and read their Gaussian from a packed array. The code
@@ -48,31 +48,34 @@ def main(argv=None) -> int:
     import mi_grg  # noqa: F401  (first: Dr.Jit's LLVM library and the variant)
     import numpy as np
     import drjit as dr
+    from mi_grg.core import lanes as L
     from mi_grg.core import projector as P
     from mi_grg.core import voxelizer as V
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.data.simulate import default_geometry
     from mi_grg.training.losses import tv_3d
-    if not P._packets():
+    if not L.use_packets():
         raise SystemExit("packets are the LLVM backend's path: run with llvm_ad_mono")
     raw, _ = train_step._load_state("gr", 64)
     geo = default_geometry(n=64, det=96, views=25)
     extent = train_step._train_extent()
-    saved = {"packets": P._packets, "expand": P._EXPAND_BYTES, "packet": P.PACKET,
+    # the projector's modules read lanes.use_packets / PACKET at call time; the voxelizer
+    # holds its own PACKET and _use_packets; EXPAND_BYTES is shared by both
+    saved = {"packets": L.use_packets, "expand": L.EXPAND_BYTES, "packet": L.PACKET,
              "use": V._use_packets, "pack": V._pack_chunk, "vpacket": V.PACKET}
 
     def restore():
-        P._packets, P._EXPAND_BYTES, P.PACKET = saved["packets"], saved["expand"], saved["packet"]
+        L.use_packets, L.EXPAND_BYTES, L.PACKET = saved["packets"], saved["expand"], saved["packet"]
         V._use_packets, V._pack_chunk, V.PACKET = saved["use"], saved["pack"], saved["vpacket"]
 
     def projector_mode(name):
         restore()
         if name == "per-pixel":
-            P._packets = lambda: False
+            L.use_packets = lambda: False
         elif name == "packets, sums per parameter":
-            P._EXPAND_BYTES = 0
+            L.EXPAND_BYTES = 0
         elif name == "packets, PACKET=8":
-            P.PACKET = 8
+            L.PACKET = 8
 
     def voxelizer_mode(name):
         restore()

@@ -21,6 +21,7 @@ densities and the detector-plane offsets (means2d), as training does.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -91,14 +92,79 @@ def _fwd_bwd_fns(g, geo, extent, views):
     return fwd, fwd_bwd
 
 
+@contextlib.contextmanager
+def profiled(book: dict):
+    """Phase times (s) and work counts of the projector's passes inside the block, booked
+    into ``book``. The bench wraps the projector's steps with synchronising timers (the
+    projector itself never synchronises for them): chunk classification, the pixel
+    kernels per mode, and Dr.Jit AD from the record parameters to the Gaussians."""
+    import drjit as dr
+    import mitsuba as mi
+    from mi_grg.core import projector as P
+    from mi_grg.core.projector_kernels import lane_values
+
+    def add(key, value):
+        book[key] = book.get(key, 0) + value
+
+    def timed(name_of, fn, before=None, after=None, count=None):
+        def wrapper(*args, **kwargs):
+            if before is not None:
+                before(*args)
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            if after is not None:
+                after(out, *args)
+            dr.sync_thread()
+            add(name_of(*args), time.perf_counter() - t0)
+            if count is not None:
+                count(out)
+            return out
+        return wrapper
+
+    def count_pixels(mode, det, arrays, vbase, rec, row, *rest):
+        if mode != dr.ADMode.Primal:
+            return
+        with dr.suspend_grad():
+            *_, lo, hi = lane_values(det, *arrays, rec, row)
+            cnt = dr.sum(mi.Float(dr.maximum(hi - lo + 1, 0)), axis=None)
+        add("pixels_regular", int(cnt[0]))
+
+    def eval_kernel(out, mode, det, arrays, vbase, rec, row, image, *rest):
+        dr.eval(image if out is None else out)
+
+    def count_chunk(prep):
+        add("records_regular", prep.n_reg)
+        add("records_near", prep.n_near)
+        if prep.n_reg:
+            add("rows_regular", int(dr.sum(prep.footprint["n_rows"], axis=None)[0]))
+
+    saved = (P.PreparedChunk, P.regular_kernel, P.near_kernel, P._ProjectOp._backward_to_leaves)
+    P.PreparedChunk = timed(lambda *a: "classify", P.PreparedChunk, count=count_chunk)
+    P.regular_kernel = timed(lambda mode, *a: "kernel_" + mode.name.lower(), P.regular_kernel,
+                             before=count_pixels, after=eval_kernel)
+    P.near_kernel = timed(lambda mode, *a: "kernel_near_" + mode.name.lower(), P.near_kernel,
+                          after=eval_kernel)
+    P._ProjectOp._backward_to_leaves = timed(lambda *a: "ad_backward", saved[3])
+    try:
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        yield book
+        dr.sync_thread()
+        phases = sum(v for k, v in book.items() if isinstance(v, float))
+        add("other", time.perf_counter() - t0 - phases)
+    finally:
+        (P.PreparedChunk, P.regular_kernel, P.near_kernel,
+         P._ProjectOp._backward_to_leaves) = saved
+
+
 def _pairs(g, geo, extent):
-    """(Gaussian, pixel) evaluations of one forward pass, from the projector's profiler."""
+    """(Gaussian, pixel) evaluations of one forward pass, from the bench's profiler."""
     import drjit as dr
     from mi_grg.core import projector as P
-    P._PROFILE = {}
-    with dr.suspend_grad():
+    prof = {}
+    with profiled(prof), dr.suspend_grad():
         dr.eval(P.project_dr(g, geo, extent=extent))
-    prof, P._PROFILE = P._PROFILE, None
     return int(prof.get("pixels_regular", 0)), prof
 
 
@@ -134,12 +200,9 @@ def worker_phases(cfg):
     fwd_bwd()
     out = []
     for _ in range(cfg["runs"]):
-        P._PROFILE = {}
-        P._tick("start")
-        fwd_bwd()
-        P._tick("end")
-        out.append({k: v for k, v in P._PROFILE.items() if not k.startswith("_")})
-    P._PROFILE = None
+        with profiled({}) as book:
+            fwd_bwd()
+        out.append(book)
     keys = [k for k in out[0] if isinstance(out[0][k], float)]
     return {k: statistics.median(o.get(k, 0.0) for o in out) for k in keys}
 
@@ -195,11 +258,14 @@ def worker_ad_compare(cfg):
     import mitsuba as mi
     import numpy as np
     from mi_grg.core import projector as P
+    from mi_grg.core import projector_records as R
     from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.projector_chunks import PreparedChunk, expand_rows
+    from mi_grg.core.projector_kernels import row_interval
     g, geo, _ = _workload(cfg["n"], cfg["nd"])
     fr = P.view_frames(geo)
-    det = P._DetectorConstants(fr, geo, P.DEFAULT_EXTENT)
-    views = P._ViewFrameArrays(fr)
+    det = R.DetectorConstants(fr, geo, P.DEFAULT_EXTENT)
+    views = R.ViewFrameArrays(fr)
     nv, nu = geo.nDetector
     y = mi.Float(np.random.default_rng(1).normal(size=nv * nu).astype(np.float32))
 
@@ -207,20 +273,20 @@ def worker_ad_compare(cfg):
         leaves = [type(a)(a) for a in (g.positions, g.scales, g.rotations, g.densities)]
         for a in leaves:
             dr.enable_grad(a)
-        gauss = P._gaussian_arrays(Gaussians(*leaves), None)
+        gauss = R.gaussian_arrays(Gaussians(*leaves), None)
         with dr.suspend_grad():
-            prep = P._Prepared(gauss, views, det, 0, 1, 0, len(g), None, len(g))
-        frame = P._RecordFrame(gauss, views, det, prep.reg_gi, prep.reg_vi)
-        params = P._regular_params(frame, det)
+            prep = PreparedChunk(gauss, views, det, 0, 1, 0, len(g), None, len(g))
+        frame = R.RecordFrame(gauss, views, det, prep.reg_gi, prep.reg_vi)
+        params = R.regular_params(frame, det)
         with dr.suspend_grad():
-            footprint = P._footprint({k: dr.detach(v) for k, v in params.items()}, det)
+            footprint = R.footprint_ellipse({k: dr.detach(v) for k, v in params.items()}, det)
             rows = footprint["n_rows"].numpy()
         image = dr.zeros(mi.Float, nv * nu)
-        for rec, row in P._expand_rows(rows, footprint["row_lo"], P.ROWS_PER_BATCH):
+        for rec, row in expand_rows(rows, footprint["row_lo"], P.ROWS_PER_BATCH):
             with dr.suspend_grad():
                 uc = dr.gather(mi.Float, dr.detach(params["uc"]), rec)
                 vc = dr.gather(mi.Float, dr.detach(params["vc"]), rec)
-                lo, hi = P._row_interval(det, uc, mi.Float(row) + 0.5 - vc, footprint, rec)
+                lo, hi = row_interval(det, uc, mi.Float(row) + 0.5 - vc, footprint, rec)
                 cnt = mi.UInt32(dr.maximum(hi - lo + 1, 0))
                 off = dr.prefix_sum(cnt)
                 total = int(dr.sum(mi.Float(cnt), axis=None)[0])
@@ -321,10 +387,11 @@ def _markdown(res) -> str:
                   f"{res['phases_cfg']['nd']}^2, one fwd+bwd, profiled)", "",
                   "| phase | s |", "|---|---|"]
         for k, v in sorted(ph.items(), key=lambda kv: -kv[1]):
-            if v >= 5e-4 and k not in ("start", "end", "count"):   # count: profiler-only work
+            if v >= 5e-4:
                 lines.append(f"| {k} | {v:.4f} |")
         lines += ["", "kernel_*: the per-pixel loops; ad_backward: Dr.Jit AD from the 11 record "
-                  "parameters to the Gaussians; classify/records/rows/expand: per-record setup."]
+                  "parameters to the Gaussians; classify: per-record setup and row expansion; other: the "
+                  "rest (arguments, images)."]
     ext = res["extent"]
     lines += ["", "## Accuracy vs time (truncation extent)", "",
               f"N = {res['extent_cfg']['n']:,}, {res['extent_cfg']['nd']}^2, one view; error "

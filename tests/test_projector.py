@@ -474,9 +474,9 @@ def test_packet_path_equals_per_pixel_path(rng, monkeypatch):
     multiple of PACKET, with a near-source Gaussian, several views and row batches."""
     import drjit as dr
     import mitsuba as mi
-    from mi_grg.core import projector as P
+    from mi_grg.core import lanes, projector as P
     from mi_grg.core.gaussians import Gaussians
-    if not P._packets():
+    if not lanes.use_packets():
         pytest.skip("packets are the LLVM backend's path")
     geo = geometry("cone", nd=(12, 13), views=3)
     assert geo.nDetector[1] % P.PACKET
@@ -508,9 +508,9 @@ def test_packet_path_equals_per_pixel_path(rng, monkeypatch):
     monkeypatch.setattr(P, "ROWS_PER_BATCH", 23)             # several batches per record sum
     img_b, g_b, t_b = run()
     monkeypatch.setattr(P, "ROWS_PER_BATCH", 1 << 22)
-    monkeypatch.setattr(P, "_EXPAND_BYTES", 0)               # per-parameter scatter-adds
+    monkeypatch.setattr(lanes, "EXPAND_BYTES", 0)            # per-parameter scatter-adds
     img_s, g_s, t_s = run()
-    monkeypatch.setattr(P, "_packets", lambda: False)        # the per-pixel path (CUDA's)
+    monkeypatch.setattr(lanes, "use_packets", lambda: False)  # the per-pixel path (CUDA's)
     img_px, g_px, t_px = run()
     assert img_px.shape == (3 * 12 * 13,) and img_px.max() > 0
     for im, gr, tan in ((img_pk, g_pk, t_pk), (img_b, g_b, t_b), (img_s, g_s, t_s)):

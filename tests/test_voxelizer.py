@@ -143,7 +143,7 @@ def test_packet_columns_match_brute_force(rng, monkeypatch):
     (PACKET voxels per store, a block starting anywhere); it equals the float64 brute force
     and the per-voxel path, and the backward's packed Gaussian values give the gradients of
     the gathers."""
-    from mi_grg.core import projector
+    from mi_grg.core import lanes, projector
     geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(16, 16), sDetector=(4.0, 4.0),
                    nVoxel=(12, 10, 2 * projector.PACKET), sVoxel=(2.0, 1.8, 2.2),
                    offOrigin=(0.1, 0.05, -0.1), angles=[0.3])
@@ -151,7 +151,7 @@ def test_packet_columns_match_brute_force(rng, monkeypatch):
     g = to_gaussians(params)
     blocks = [None, ((2, 1, 3), (8, 7, projector.PACKET))]
     y = [rng.normal(size=geo.nVoxel if b is None else b[1]) for b in blocks]
-    if projector._packets():
+    if lanes.use_packets():
         plan = voxelizer._plan(g.positions, g.scales, g.rotations, geo, (0, 0, 0), geo.nVoxel,
                                DEFAULT_EXTENT, voxelizer.DEFAULT_CHUNK_PAIRS)
         assert voxelizer._use_packets(plan)

@@ -10,6 +10,8 @@ Physical parameters are stored as Dr.Jit arrays of the active variant:
 Training optimises unconstrained *raw* parameters; the activations between the two live
 here only (``to_raw`` / ``from_raw``):
     density = softplus(raw_density), scale = exp(raw_scale), rotation = raw / |raw|.
+The validity checks that the projector and the voxelizer run on every call
+(``gaussian_checks``, ``first_failure``) live here too.
 """
 from __future__ import annotations
 
@@ -169,3 +171,55 @@ def inverse_covariance(scales, rotations) -> "mi.Matrix3f":
     e = [[sum(R[i][k] * R[j][k] * w[k] for k in range(3)) for j in range(3)] for i in range(3)]
     return mi.Matrix3f(e[0][0], e[0][1], e[0][2], e[1][0], e[1][1], e[1][2],
                        e[2][0], e[2][1], e[2][2])
+
+
+def unit_quaternions(q):
+    """q / |q| (differentiable). The projector and the voxelizer normalise with it, so that
+    the rotation gradient is tangent to the unit sphere and R(q) is a rotation exactly."""
+    return q * dr.rsqrt(dr.squared_norm(q))
+
+
+def gaussian_checks(g: Gaussians, density_scale=None) -> list:
+    """Per-Gaussian validity tests shared by the projector and the voxelizer, in reporting
+    order: [(bad lanes, message)]. Lazy; ``first_failure`` evaluates them all at once.
+    Widths must already agree (density_scale included)."""
+    p, s, q, rho = (dr.detach(a) for a in (g.positions, g.scales, g.rotations, g.densities))
+
+    def nonfinite(*comps):
+        bad = ~dr.isfinite(comps[0])
+        for c in comps[1:]:
+            bad |= ~dr.isfinite(c)
+        return bad
+
+    qn = dr.squared_norm(q)
+    checks = [
+        (nonfinite(p.x, p.y, p.z), "gaussians.positions [N, 3] contains NaN or Inf"),
+        (nonfinite(s.x, s.y, s.z), "gaussians.scales [N, 3] contains NaN or Inf"),
+        (nonfinite(q.x, q.y, q.z, q.w), "gaussians.rotations [N, 4] (w, x, y, z) contains NaN or Inf"),
+        (nonfinite(rho), "gaussians.densities [N] contains NaN or Inf"),
+        (dr.minimum(dr.minimum(s.x, s.y), s.z) <= 0,
+         "gaussians.scales must be > 0 (standard deviations, length unit)"),
+        (rho < 0, "gaussians.densities must be >= 0"),
+        (qn == 0, "gaussians.rotations contains a zero quaternion (w, x, y, z)"),
+        (dr.abs(dr.sqrt(qn) - 1) > QUATERNION_TOL,
+         f"gaussians.rotations must be unit quaternions (w, x, y, z), | |q| - 1 | <= "
+         f"{QUATERNION_TOL}; unnormalised quaternions given (normalise them first)"),
+    ]
+    if density_scale is not None:
+        checks.append((nonfinite(dr.detach(density_scale)), "density_scale [N] contains NaN or Inf"))
+    return checks
+
+
+def first_failure(g: Gaussians, checks: list):
+    """The message of the first check (in list order) that fails for any Gaussian, or None.
+
+    One kernel and one host synchronisation for all checks (this runs on every training
+    iteration): each lane's first failing check index, min-reduced over the lanes. The
+    Gaussians' own arrays are evaluated by the same kernel, so later kernels reuse them."""
+    code = mi.UInt32(len(checks))
+    for k in reversed(range(len(checks))):
+        code = dr.select(checks[k][0], k, code)
+    dr.schedule(dr.detach(g.positions), dr.detach(g.scales), dr.detach(g.rotations),
+                dr.detach(g.densities))
+    k = int(dr.min(code)[0])
+    return checks[k][1] if k < len(checks) else None

@@ -58,13 +58,13 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.core.gaussians import Gaussians, inverse_covariance, rotation_matrix
+# one set of input checks, one quaternion normalisation, one lane layout and one
+# truncation rule for the projector and the voxelizer
+from mi_grg.core.gaussians import (Gaussians, first_failure, gaussian_checks, inverse_covariance,
+                                   rotation_matrix, unit_quaternions)
 from mi_grg.core.geometry import Geometry
-# one truncation rule, one set of input checks and one quaternion normalisation for the
-# projector and the voxelizer
-from mi_grg.core.projector import (DEFAULT_EXTENT, PACKET, first_failure, gaussian_checks,
-                                   segment_lanes, unit_quaternions)
-from mi_grg.core.projector import _packets, expand_fits, pack_rows
+from mi_grg.core.lanes import PACKET, expand_fits, pack_rows, segment_lanes, use_packets
+from mi_grg.core.projector import DEFAULT_EXTENT
 
 
 #: Default (Gaussian, voxel) pairs per chunk; a column counts as its voxels + 8, so a chunk
@@ -236,8 +236,8 @@ def _pack_chunk(plan: _Plan, ids, p, a, rho):
     """The values a lane reads of each Gaussian of a chunk (row = position in ``ids``):
     p (3), Sigma^-1 (6), rho, the box's first x and y voxel and its y size, as one
     row-major [len(ids), 16] array that a lane reads with one packet load (LLVM; see
-    ``projector._packets``); None elsewhere (lanes gather each value)."""
-    if not _packets():
+    ``lanes.use_packets``); None elsewhere (lanes gather each value)."""
+    if not use_packets():
         return None
     Float = mi.Float
     vals = [dr.gather(Float, c, ids) for c in list(p) + list(a) + [rho]]
@@ -370,10 +370,10 @@ def _column_loop(plan: _Plan, lane: dict, state: tuple, step):
 
 
 def _use_packets(plan: _Plan) -> bool:
-    """Packet stores along z (LLVM; see ``projector._packets``): the block's z size must be
+    """Packet stores along z (LLVM; see ``lanes.use_packets``): the block's z size must be
     a whole number of packets (then every column starts on a packet boundary) and its
     per-thread copies must stay small."""
-    return _packets() and plan.size[2] % PACKET == 0 and expand_fits(int(np.prod(plan.size)))
+    return use_packets() and plan.size[2] % PACKET == 0 and expand_fits(int(np.prod(plan.size)))
 
 
 def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
