@@ -1,4 +1,4 @@
-"""A training run planned to a wall-clock budget (``TrainConfig.time_budget``, issue 21).
+"""A training run planned to a wall-clock budget (``TrainConfig.time_budget``).
 
 With ``time_budget = SECONDS`` the trainer does not take its iteration count from
 ``trainer.iteration_rule`` but plans it, after De-Init, from what this machine measures:
@@ -36,10 +36,12 @@ counts and is priced (at 256^3 one costs about 11 s; elsewhere the trainer leave
 of ``train_seconds``); the volume and scores that ``mi_grg.reconstruct`` computes
 afterwards are not part of it (``RESERVE`` leaves room for them).
 metrics.json ``method_info.time_plan`` records the probe, the plan and the loop's share.
+``BudgetPlanner`` holds one run's plan; the trainer asks it and applies its answers.
 """
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -234,3 +236,99 @@ def replans_of(plan: dict | None) -> list:
 def replans_done(plan: dict) -> bool:
     """Whether the final re-plan (made when densification ended) has been made."""
     return any(r.get("final") for r in replans_of(plan))
+
+
+class BudgetPlanner:
+    """The time plan of one ``time_budget`` run; the trainer asks it, and applies what it says.
+
+    ``plan_run`` prices the run's schedule from the probe and fixes the iteration count;
+    ``wants_replan`` / ``replan`` re-price the rest from the loop's own clock; ``out_of_time``
+    is the deadline. The plan itself is a dict (metrics.json's ``time_plan``) that the
+    trainer keeps in its state, so that checkpoints carry it and a resumed run replays its
+    re-plans (``replans_of``).
+
+    What depends on the run comes in as functions of an iteration count I:
+    ``scaled(I)``: the scaled schedule (densify_start / densify_stop / densify_interval /
+    eval_every); ``window_end(I, eval_every)``: the end of the held-out window;
+    ``logs_3d(I, after, eval_every)``: the 3-D PSNR logs of iterations after+1 .. I."""
+
+    def __init__(self, budget: float, cap: int, scaled, window_end, logs_3d, plan=None):
+        self.budget, self.cap = float(budget), int(cap)
+        self.scaled, self.window_end, self.logs_3d = scaled, window_end, logs_3d
+        self.plan = plan
+
+    def plan_run(self, n: int, probe, t_begin: float) -> dict:
+        """Probe (``probe()``: ProbeCosts' seconds on the ``n`` initial Gaussians), then the
+        plan of the whole run; the time since ``t_begin`` (De-Init and probe) counts."""
+        costs = ProbeCosts(**probe(), n=n, cap=self.cap)
+
+        def price(iterations: int) -> float:
+            s = self.scaled(iterations)
+            return loop_seconds(iterations, s, self.window_end(iterations, s["eval_every"]),
+                                costs, self.logs_3d(iterations, 0, s["eval_every"]))
+        self.plan = make_plan(self.budget, time.perf_counter() - t_begin, costs, price)
+        return self.plan
+
+    def wants_replan(self, it: int, densified: bool, densify_stop: int) -> bool:
+        """Re-plan at every densification iteration and once when the window closes."""
+        return not replans_done(self.plan) and (densified or it == densify_stop)
+
+    def out_of_time(self, loop_seconds_so_far: float) -> bool:
+        """Whether the loop's wall clock has reached its share of the budget."""
+        return loop_seconds_so_far >= self.plan["loop_budget_seconds"]
+
+    def replan(self, it: int, seconds: float, n: int, log: list, sched: dict,
+               is_densify_iteration) -> dict | None:
+        """The rest of the run re-planned at iteration ``it`` (loop clock ``seconds``, ``n``
+        Gaussians) from the loop's ``log`` rows: while densifying, the count's recent growth
+        priced up to the end of the window, which moves with the new count; when
+        densification ends (N final), once more at the measured pace. Returns the re-plan
+        {"at", "iterations", "densify_stop" (None once final), ...}, also recorded in the
+        plan's ``replans``; None without log rows."""
+        rows = log[-max(1, min(200, it // 4)):]   # the last quarter, <= 200 iterations
+        if not rows:
+            return None
+        final = it >= sched["densify_stop"]
+        pace, step = self._pace(it, seconds, n, rows, final, is_densify_iteration)
+        every = sched["eval_every"]
+
+        def stop_for(iterations: int) -> int:
+            return sched["densify_stop"] if final else \
+                max(it + 1, self.scaled(iterations)["densify_stop"])
+
+        def price_rest(iterations: int) -> float:
+            stop = stop_for(iterations)
+            evals = max(0, self.window_end(iterations, every) // every - it // every) + 1
+            events = densify_iterations(sched["densify_start"], stop, sched["densify_interval"],
+                                        iterations)
+            return rest_seconds(pace, iterations, stop, events, evals,
+                                self.logs_3d(iterations, it, every))
+        iterations = replan(it, self.plan["loop_budget_seconds"] - seconds, price_rest)
+        record = {"at": it, "iterations": iterations,
+                  "densify_stop": None if final else stop_for(iterations), "final": final,
+                  "n": n, "seconds_per_iteration": round(step, 5),
+                  "growth_per_iteration": round(pace.growth, 2)}
+        self.plan.setdefault("replans", []).append(record)
+        return record
+
+    def _pace(self, it, seconds, n, rows, final, is_densify_iteration):
+        """(LoopPace, seconds per plain step) measured on the log ``rows`` up to ``it``."""
+        counts = [r["n_gaussians"] for r in rows]
+        clock = [r["seconds"] for r in rows] + [seconds]
+        # Step k runs iteration rows[k] + 1 on rows[k]'s count, after rows[k]'s evaluation
+        # and 3-D log (if any); both and densification are priced apart.
+        evaluated = ["heldout_psnr" in r or "psnr_3d" in r for r in rows]
+        densifying = [is_densify_iteration(r["iteration"] + 1) for r in rows]
+        step = measured_pace(clock, [e or d for e, d in zip(evaluated, densifying)])
+        growth = 0.0 if final else max(0.0, (n - counts[0]) / max(1, it - rows[0]["iteration"]))
+        probe = self.plan["probe"]
+        # A densification iteration's extra time, measured (the probe times only the graph
+        # rebuild): its step beyond the pace, per Gaussian.
+        extra = [(clock[k + 1] - clock[k] - step) / prev["n_gaussians"]
+                 for k, prev in enumerate(rows) if densifying[k] and not evaluated[k]]
+        rebuild = max(probe["rebuild"] / probe["n"], sum(extra) / len(extra) if extra else 0.0)
+        pace = LoopPace(at=it, per_gaussian=step / (sum(counts) / len(counts)), n=n,
+                        growth=growth, cap=probe["cap"], rebuild=rebuild,
+                        evaluation=probe["evaluation"] / probe["n"],
+                        log_3d=probe.get("log_3d", 0.0) / probe["n"])
+        return pace, step

@@ -33,12 +33,11 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
-from mi_grg.training.budget import replans_done, replans_of
+from mi_grg.training.budget import BudgetPlanner, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
 from mi_grg.training.config import (ITERATION_RULE, ITERATION_RULES, TRAIN_EXTENT, TrainConfig,
                                     make_config)
-from mi_grg.training.densify import densify_iterations
 from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
 from mi_grg.protocol.early_stop import EarlyStopper
@@ -187,8 +186,6 @@ class Trainer:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
-            for r in replans_of(plan):
-                self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
         else:
             if resume and self.checkpoint_path is not None:
                 print(f"no checkpoint in {self.out}; starting from scratch")
@@ -197,8 +194,16 @@ class Trainer:
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
-        if not resuming and cfg.time_budget is not None:
-            self._plan_to_budget(g, t_begin)
+        self.planner = None
+        if cfg.time_budget is not None:
+            self.planner = self._budget_planner()
+            if resuming:      # the recorded plan, replayed (another machine would plan otherwise)
+                for r in replans_of(plan):
+                    self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
+            else:
+                self.state.time_plan = self.planner.plan_run(len(g), lambda: self._probe(g),
+                                                             t_begin)
+                self._schedule(self.time_plan["iterations"])
 
     @property
     def time_plan(self) -> dict | None:
@@ -228,73 +233,21 @@ class Trainer:
         self.densifier = PGADensifier(dcfg, seed=cfg.seed)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
 
-    def _plan_to_budget(self, g: Gaussians, t_begin: float) -> None:
-        """Probe this machine's speed on the initial Gaussians ``g`` and plan the iteration
-        count to ``time_budget`` (mi_grg.training.budget); the schedule is rebuilt for it."""
-        from mi_grg.training.budget import ProbeCosts, loop_seconds, make_plan
-        costs = ProbeCosts(**self._probe(g), n=len(g),
-                           cap=gaussian_cap(self.cfg, self.case.geometry))
-
-        def price(iterations: int) -> float:
-            s = _scaled(self.cfg, iterations)
-            window = dataclasses.replace(self.views, iterations=iterations,
-                                         eval_every=s["eval_every"]).window_end
-            return loop_seconds(iterations, s, window, costs,
-                                self._logs_3d(iterations, 0, s["eval_every"]))
-        self.state.time_plan = make_plan(self.cfg.time_budget, time.perf_counter() - t_begin,
-                                         costs, price)
-        self._schedule(self.time_plan["iterations"])
+    def _budget_planner(self) -> BudgetPlanner:
+        """The time_budget planner of this run, on the state's plan (a resumed run's)."""
+        def window_end(iterations: int, eval_every: int) -> int:
+            return dataclasses.replace(self.views, iterations=iterations,
+                                       eval_every=eval_every).window_end
+        return BudgetPlanner(self.cfg.time_budget, gaussian_cap(self.cfg, self.case.geometry),
+                             lambda iterations: _scaled(self.cfg, iterations), window_end,
+                             self._logs_3d, plan=self.state.time_plan)
 
     def _replan(self, it: int, seconds: float, n: int) -> None:
-        """Re-plan the rest of a time_budget run at ``it`` from the loop's own clock
-        (mi_grg.training.budget.rest_seconds): at every densification iteration, the
-        count's recent growth priced up to the end of the window, which moves with the new
-        count; when densification ends (N final), once more at the measured pace. Each
-        re-plan is recorded in the time plan (``replans``), so that a resume replays them."""
-        from mi_grg.training.budget import LoopPace, measured_pace, replan, rest_seconds
-        plan, sched = self.time_plan, self.sched
-        rows = self.state.log[-max(1, min(200, it // 4)):]   # the last quarter, <= 200 its
-        if not rows:
-            return
-        final = it >= sched["densify_stop"]
-        counts = [r["n_gaussians"] for r in rows]
-        clock = [r["seconds"] for r in rows] + [seconds]
-        # Step k runs iteration rows[k] + 1 on rows[k]'s count, after rows[k]'s evaluation
-        # and 3-D log (if any); both and densification are priced apart.
-        evaluated = ["heldout_psnr" in r or "psnr_3d" in r for r in rows]
-        densifying = [self.densifier.is_densify_iteration(r["iteration"] + 1) for r in rows]
-        step = measured_pace(clock, [e or d for e, d in zip(evaluated, densifying)])
-        growth = 0.0 if final else max(0.0, (n - counts[0]) / max(1, it - rows[0]["iteration"]))
-        probe = plan["probe"]
-        # A densification iteration's extra time, measured (the probe times only the graph
-        # rebuild): its step beyond the pace, per Gaussian.
-        extra = [(clock[k + 1] - clock[k] - step) / prev["n_gaussians"]
-                 for k, prev in enumerate(rows) if densifying[k] and not evaluated[k]]
-        rebuild = max(probe["rebuild"] / probe["n"], sum(extra) / len(extra) if extra else 0.0)
-        pace = LoopPace(at=it, per_gaussian=step / (sum(counts) / len(counts)), n=n,
-                        growth=growth, cap=probe["cap"], rebuild=rebuild,
-                        evaluation=probe["evaluation"] / probe["n"],
-                        log_3d=probe.get("log_3d", 0.0) / probe["n"])
-        every = sched["eval_every"]
-
-        def stop_for(iterations: int) -> int:
-            return sched["densify_stop"] if final else \
-                max(it + 1, _scaled(self.cfg, iterations)["densify_stop"])
-
-        def price_rest(iterations: int) -> float:
-            stop = stop_for(iterations)
-            window = dataclasses.replace(self.views, iterations=iterations).window_end
-            evals = max(0, window // every - it // every) + 1
-            events = densify_iterations(sched["densify_start"], stop, sched["densify_interval"],
-                                        iterations)
-            return rest_seconds(pace, iterations, stop, events, evals,
-                                self._logs_3d(iterations, it, every))
-        iterations = replan(it, plan["loop_budget_seconds"] - seconds, price_rest)
-        stop = None if final else stop_for(iterations)
-        plan.setdefault("replans", []).append(
-            {"at": it, "iterations": iterations, "densify_stop": stop, "final": final, "n": n,
-             "seconds_per_iteration": round(step, 5), "growth_per_iteration": round(growth, 2)})
-        self._set_rest_of_run(it, iterations, stop)
+        """Ask the planner for the rest of the run at ``it`` and apply its answer."""
+        r = self.planner.replan(it, seconds, n, self.state.log, self.sched,
+                                self.densifier.is_densify_iteration)
+        if r is not None:
+            self._set_rest_of_run(it, r["iterations"], r["densify_stop"])
 
     def _set_rest_of_run(self, at: int, iterations: int, densify_stop: int | None = None) -> None:
         """The run ends at ``iterations`` instead (decided at iteration ``at``): the held-out
@@ -461,8 +414,8 @@ class Trainer:
             st.iteration, st.raw = it, raw
             row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
                    "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            if (self.time_plan is not None and not replans_done(self.time_plan)
-                    and (densified or it == self.sched["densify_stop"])):
+            if (self.planner is not None
+                    and self.planner.wants_replan(it, densified, self.sched["densify_stop"])):
                 self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
                 bar.total = self.iterations
             raw = self._evaluate(it, raw, row)
@@ -474,8 +427,8 @@ class Trainer:
                             refresh=False)
             st.seconds = time.perf_counter() - self._t_start
             st.rng = self.rng.bit_generator.state
-            if (self.time_plan is not None and st.stopped_by is None
-                    and st.seconds >= self.time_plan["loop_budget_seconds"]):
+            if (self.planner is not None and st.stopped_by is None
+                    and self.planner.out_of_time(st.seconds)):
                 st.stopped_by = (f"time budget ({self.cfg.time_budget:g} s) reached at "
                                  f"iteration {it} of {self.iterations} planned")
             if it % self.cfg.checkpoint_every == 0 or st.stopped_by is not None:
