@@ -43,10 +43,10 @@ PREVIEW_PNG, PREVIEW_GIF = "preview.png", "preview.gif"
 
 
 def transfer_function(vol: np.ndarray) -> dict:
-    """Breakpoints ``lo`` = ``start``, ``hi`` (densities) and the RGBA lookup table
-    [LUT_SIZE, 4] over x = (density - start) / (hi - start) in [0, 1] (colour in [0, 1], opacity in
-    [0, 1] as a fraction of the maximum extinction). ValueError for a volume that is not
-    finite or has nothing positive to show."""
+    """Breakpoints ``lo`` = ``start`` and ``hi`` (densities) of ``vol`` [x, y, z], and the
+    RGBA lookup table [LUT_SIZE, 4] over x = (density - start) / (hi - start) in [0, 1]:
+    colour in [0, 1], opacity as a fraction of the maximum extinction. ValueError for a
+    volume that is not finite or has nothing positive to show."""
     vol = np.asarray(vol)
     bad = int(np.size(vol) - np.count_nonzero(np.isfinite(vol)))
     if bad:
