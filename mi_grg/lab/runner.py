@@ -306,10 +306,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         {"planned", "done_before", "linked", "ran", "failed", "runs": [per-run dicts]}.
     """
     suite = load_suite(suite_path)
-    if isinstance(methods, str):
-        methods = [m for m in methods.split(",") if m]
-    if isinstance(cases, str):
-        cases = [c for c in cases.split(",") if c]
+    methods, cases = _as_list(methods), _as_list(cases)
     if name == "all":   # the experiments the suite lists (every one if it lists none)
         names = [n for n in EXPERIMENTS if n in suite.experiments] or list(EXPERIMENTS)
     else:
@@ -317,26 +314,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
     specs = [s for n in names for s in plan_experiment(n, suite, methods, cases)]
     # the workers of a cluster may start elsewhere: they get absolute paths
     out = Path(out_dir).absolute() if dask else Path(out_dir)
-    index = _index_done(out) if out.exists() else {}
-    rows, todo, first_of = [], [], {}
-    for s in specs:
-        d, key = s.run_dir(out), s.key()
-        row = {"experiment": s.experiment, "case": s.case.name, "run": s.run,
-               "category": s.case.category, "label": s.label, "views": s.case.views,
-               "method": s.method, "options": s.options, "dir": str(d)}
-        if (d / "metrics.json").is_file() and not _is_done(d):
-            row["stale"] = stale_options(d)   # defaults changed since it ran: run again
-        if _is_done(d):
-            row["status"] = "done before"
-        elif key in index:
-            row["status"], row["target"] = "linked", str(index[key])
-        elif key in first_of:
-            row["status"], row["target"] = "duplicate", str(first_of[key].run_dir(out))
-        else:
-            row["status"] = "todo"
-            first_of[key] = s
-            todo.append(s)
-        rows.append(row)
+    rows, todo = _plan_rows(specs, out)
     datas = {}
     for s in todo:
         if not (s.data_dir(out) / "meta_data.json").is_file():
@@ -367,34 +345,131 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         else:
             n_jobs = None
             where = {"dask": str(dask), "threads_per_run": threads_per_run or 1}
+        inv = _Invocation(name, names, suite, out, methods, cases, progress, client, n_jobs,
+                          where, threads_per_run)
+        sim_failed = inv.simulate(datas)
+        _write_specs(todo, out)
+        inv.run(todo, specs, rows, sim_failed)
+        _resolve_duplicates(specs, rows, out)
+        inv.write_index(rows, final=True)
+        summary.update({k: sum(r["status"] == k for r in rows)
+                        for k in ("done before", "linked", "ran", "failed")})
+        return summary
+
+
+def _as_list(values):
+    """A comma-separated string as a list (None and lists unchanged)."""
+    if isinstance(values, str):
+        return [v for v in values.split(",") if v]
+    return values
+
+
+def _plan_rows(specs: list, out: Path):
+    """(rows, todo): a row per spec with its status (done before, linked to an identical
+    finished run elsewhere, duplicate of another spec of this call, todo) and the specs to
+    run."""
+    index = _index_done(out) if out.exists() else {}
+    rows, todo, first_of = [], [], {}
+    for s in specs:
+        d, key = s.run_dir(out), s.key()
+        row = {"experiment": s.experiment, "case": s.case.name, "run": s.run,
+               "category": s.case.category, "label": s.label, "views": s.case.views,
+               "method": s.method, "options": s.options, "dir": str(d)}
+        if (d / "metrics.json").is_file() and not _is_done(d):
+            row["stale"] = stale_options(d)   # defaults changed since it ran: run again
+        if _is_done(d):
+            row["status"] = "done before"
+        elif key in index:
+            row["status"], row["target"] = "linked", str(index[key])
+        elif key in first_of:
+            row["status"], row["target"] = "duplicate", str(first_of[key].run_dir(out))
+        else:
+            row["status"] = "todo"
+            first_of[key] = s
+            todo.append(s)
+        rows.append(row)
+    return rows, todo
+
+
+def _write_specs(todo: list, out: Path) -> None:
+    """Each run's run_spec.json, before any runs: a run in progress is recognisable on disk."""
+    for s in todo:
+        d = s.run_dir(out)
+        if d.is_symlink():            # linked to a run that is stale now: run it here
+            d.unlink()
+        for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
+            (d / old).unlink(missing_ok=True)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
+                                                    indent=2, default=str))
+
+
+def _resolve_duplicates(specs: list, rows: list, out: Path) -> None:
+    """Linked and duplicate runs become links to their finished twin, or failures."""
+    for s, row in zip(specs, rows):
+        if row["status"] in ("linked", "duplicate"):
+            target = Path(row["target"])
+            if _is_done(target):
+                _link(s.run_dir(out), target)
+                row["status"] = "linked"
+            else:
+                row["status"] = "failed"
+                row["error"] = f"identical run {target} failed"
+
+
+@dataclasses.dataclass
+class _Invocation:
+    """What the steps of one ``run_experiment`` call share: where and how tasks run."""
+    name: str
+    names: list
+    suite: Suite
+    out: Path
+    methods: list | None
+    cases: list | None
+    progress: bool
+    client: object
+    n_jobs: int | None
+    where: dict
+    threads_per_run: int | None
+
+    def base_task(self, n_parallel: int) -> dict:
+        """The task fields every worker gets: variant, extra methods, Dr.Jit threads."""
         cores = os.cpu_count() or 1
+        threads = self.threads_per_run or (1 if self.client is not None
+                                           else max(1, cores // max(1, n_parallel)))
+        return {"variant": self.suite.variant, "extra": self.suite.extra_methods,
+                "threads": threads if self.suite.variant.startswith("llvm") else None}
 
-        def base_task(n_parallel):
-            threads = threads_per_run or (1 if client is not None
-                                          else max(1, cores // max(1, n_parallel)))
-            return {"variant": suite.variant, "extra": suite.extra_methods,
-                    "threads": threads if suite.variant.startswith("llvm") else None}
+    def simulate(self, datas: dict) -> set:
+        """Simulate the missing data sets; returns the names of those that failed."""
+        if not datas:
+            return set()
+        tasks = [{**self.base_task(min(self.n_jobs or 1, len(datas))),
+                  "case": dataclasses.asdict(c), "data_dir": str(self.out / "data" / dn)}
+                 for dn, c in datas.items()]
+        res = _execute(_simulate_task, tasks, self.n_jobs, "simulate", self.progress,
+                       client=self.client)
+        return {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
 
-        sim_failed = set()
-        if datas:
-            tasks = [{**base_task(min(n_jobs or 1, len(datas))),
-                      "case": dataclasses.asdict(c), "data_dir": str(out / "data" / dn)}
-                     for dn, c in datas.items()]
-            res = _execute(_simulate_task, tasks, n_jobs, "simulate", progress, client=client)
-            sim_failed = {dn for dn, r in zip(datas, res) if r["status"] != "ok"}
-        for s in todo:   # write specs first: a run in progress is recognisable on disk
-            d = s.run_dir(out)
-            if d.is_symlink():            # linked to a run that is stale now: run it here
-                d.unlink()
-            for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
-                (d / old).unlink(missing_ok=True)
-            d.mkdir(parents=True, exist_ok=True)
-            (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
-                                                        indent=2, default=str))
+    def write_index(self, rows: list, final: bool) -> None:
+        """Each experiment's runs.json. While runs go on, only finished rows are written:
+        a killed runner leaves a runs.json of everything that completed (the report reads
+        it as it is)."""
+        for n in self.names:
+            mine = [r for r in rows if r["experiment"] == n
+                    and (final or r["status"] in ("done before", "ran", "failed"))]
+            if mine or final:
+                command = experiment_command(n, self.suite.path, self.out, self.methods,
+                                             self.cases)
+                _write_runs_json(self.out / n, n, self.suite, mine, command, self.where)
+
+    def run(self, todo: list, specs: list, rows: list, sim_failed: set) -> None:
+        """Run the runs whose data exist, longest first; record each result in its row."""
+        out = self.out
         runnable = [s for s in todo if s.case.data_dir_name not in sim_failed]
         # Longest first, so that no long run starts last and leaves the other workers idle.
         runnable.sort(key=lambda s: -expected_cost(s, out))
-        tasks = [{**base_task(min(n_jobs or 1, len(runnable))),
+        tasks = [{**self.base_task(min(self.n_jobs or 1, len(runnable))),
                   "run_dir": str(s.run_dir(out)), "data_dir": str(s.data_dir(out)),
                   "method": s.method, "options": s.options} for s in runnable]
         row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
@@ -407,41 +482,18 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
             if r["status"] != "ok" and not err.exists():   # the worker died before writing
                 err.write_text(str(r.get("error")) + "\n")
 
-        def write_index(final: bool) -> None:
-            # While runs go on, only finished rows are written: a killed runner leaves a
-            # runs.json of everything that completed (the report reads it as it is).
-            for n in names:
-                mine = [r for r in rows if r["experiment"] == n
-                        and (final or r["status"] in ("done before", "ran", "failed"))]
-                if mine or final:
-                    command = experiment_command(n, suite.path, out, methods, cases)
-                    _write_runs_json(out / n, n, suite, mine, command, where)
-
         def on_result(i, r):
             finish(runnable[i].key(), r)
-            write_index(final=False)
+            self.write_index(rows, final=False)
 
         if tasks:
-            _execute(_run_task, tasks, n_jobs, name, progress, on_result=on_result,
-                     client=client)
+            _execute(_run_task, tasks, self.n_jobs, self.name, self.progress,
+                     on_result=on_result, client=self.client)
         for s in todo:
             if s.case.data_dir_name in sim_failed:
                 msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
                 (s.run_dir(out) / "error.txt").write_text(msg + "\n")
                 finish(s.key(), {"status": "failed", "error": msg})
-        for s, row in zip(specs, rows):
-            if row["status"] in ("linked", "duplicate"):
-                target = Path(row["target"])
-                if _is_done(target):
-                    _link(s.run_dir(out), target)
-                    row["status"] = "linked"
-                else:
-                    row["status"] = "failed"
-                    row["error"] = f"identical run {target} failed"
-        write_index(final=True)
-        summary.update({k: sum(r["status"] == k for r in rows)
-                        for k in ("done before", "linked", "ran", "failed")})
-        return summary
 
 
 def _write_runs_json(exp_dir: Path, name: str, suite: Suite, rows: list, command: str,

@@ -94,9 +94,55 @@ def _int_field(c: dict, key: str, where: str, minimum: int) -> int:
     return v
 
 
+def _case_spec(c, where: str, seen: set) -> CaseSpec:
+    """One validated case of a suite (``where`` names it in errors; ``seen``: the names
+    of the cases before it)."""
+    from mi_grg.data.phantoms import PHANTOMS
+    known = {f.name for f in dataclasses.fields(CaseSpec)} - {"data_name"}
+    if not isinstance(c, dict):
+        raise SuiteError(f"{where} must be an object")
+    missing = [k for k in CASE_FIELDS if k not in c]
+    if missing:
+        raise SuiteError(f"{where} lacks {missing}")
+    unknown = sorted(set(c) - known)
+    if unknown:
+        raise SuiteError(f"{where} has unknown field(s) {unknown}; known: {sorted(known)}")
+    name = c["name"]
+    if not isinstance(name, str) or not name or any(ch in name for ch in "/\\ ") \
+            or name == "data":
+        raise SuiteError(f"{where}.name must be a non-empty name without / \\ or spaces "
+                         f"(and not 'data'), got {name!r}")
+    if name in seen:
+        raise SuiteError(f"{where}: duplicate case name {name!r}")
+    if c["category"] not in CATEGORIES:
+        raise SuiteError(f"{where}.category must be one of {list(CATEGORIES)}, got "
+                         f"{c['category']!r}")
+    src = c["source"]
+    if not isinstance(src, str) or not (src in PHANTOMS or src.endswith(".npy")):
+        raise SuiteError(f"{where}.source must be a phantom {PHANTOMS} or a .npy volume, "
+                         f"got {src!r}")
+    if c["mode"] not in ("cone", "parallel"):
+        raise SuiteError(f"{where}.mode must be 'cone' or 'parallel', got {c['mode']!r}")
+    noise = c["noise"]
+    if noise is not None:
+        if not isinstance(noise, dict):
+            raise SuiteError(f"{where}.noise must be null or {{I0, electronic_std}}")
+        from mi_grg.data.noise import NoiseModel
+        try:
+            NoiseModel(**noise)
+        except (TypeError, ValueError) as e:
+            raise SuiteError(f"{where}.noise: {e}") from None
+    return CaseSpec(name=name, category=c["category"], source=src,
+                    views=_int_field(c, "views", where, 2),
+                    test_views=_int_field(c, "test_views", where, 0),
+                    n=_int_field(c, "n", where, 2), det=_int_field(c, "det", where, 2),
+                    mode=c["mode"], noise=noise, seed=_int_field(c, "seed", where, 0),
+                    oversample=float(c.get("oversample", 4.0)),
+                    ground_truth=c.get("ground_truth", "average"))
+
+
 def load_suite(path) -> Suite:
     """Read and validate a suite JSON file (see experiments/README.md for the format)."""
-    from mi_grg.data.phantoms import PHANTOMS
     path = Path(path)
     try:
         raw = json.loads(path.read_text())
@@ -105,50 +151,9 @@ def load_suite(path) -> Suite:
     if not isinstance(raw, dict) or not isinstance(raw.get("cases"), list) or not raw["cases"]:
         raise SuiteError(f"{path}: expected an object with a non-empty 'cases' list")
     cases, seen = [], set()
-    known = {f.name for f in dataclasses.fields(CaseSpec)} - {"data_name"}
     for i, c in enumerate(raw["cases"]):
-        where = f"{path}: cases[{i}]"
-        if not isinstance(c, dict):
-            raise SuiteError(f"{where} must be an object")
-        missing = [k for k in CASE_FIELDS if k not in c]
-        if missing:
-            raise SuiteError(f"{where} lacks {missing}")
-        unknown = sorted(set(c) - known)
-        if unknown:
-            raise SuiteError(f"{where} has unknown field(s) {unknown}; known: {sorted(known)}")
-        name = c["name"]
-        if not isinstance(name, str) or not name or any(ch in name for ch in "/\\ ") \
-                or name == "data":
-            raise SuiteError(f"{where}.name must be a non-empty name without / \\ or spaces "
-                             f"(and not 'data'), got {name!r}")
-        if name in seen:
-            raise SuiteError(f"{where}: duplicate case name {name!r}")
-        seen.add(name)
-        if c["category"] not in CATEGORIES:
-            raise SuiteError(f"{where}.category must be one of {list(CATEGORIES)}, got "
-                             f"{c['category']!r}")
-        src = c["source"]
-        if not isinstance(src, str) or not (src in PHANTOMS or src.endswith(".npy")):
-            raise SuiteError(f"{where}.source must be a phantom {PHANTOMS} or a .npy volume, "
-                             f"got {src!r}")
-        if c["mode"] not in ("cone", "parallel"):
-            raise SuiteError(f"{where}.mode must be 'cone' or 'parallel', got {c['mode']!r}")
-        noise = c["noise"]
-        if noise is not None:
-            if not isinstance(noise, dict):
-                raise SuiteError(f"{where}.noise must be null or {{I0, electronic_std}}")
-            from mi_grg.data.noise import NoiseModel
-            try:
-                NoiseModel(**noise)
-            except (TypeError, ValueError) as e:
-                raise SuiteError(f"{where}.noise: {e}") from None
-        spec = CaseSpec(name=name, category=c["category"], source=src,
-                        views=_int_field(c, "views", where, 2),
-                        test_views=_int_field(c, "test_views", where, 0),
-                        n=_int_field(c, "n", where, 2), det=_int_field(c, "det", where, 2),
-                        mode=c["mode"], noise=noise, seed=_int_field(c, "seed", where, 0),
-                        oversample=float(c.get("oversample", 4.0)),
-                        ground_truth=c.get("ground_truth", "average"))
+        spec = _case_spec(c, f"{path}: cases[{i}]", seen)
+        seen.add(spec.name)
         cases.append(spec)
     mo = raw.get("method_options", {}) or {}
     if not isinstance(mo, dict) or not all(isinstance(v, dict) for v in mo.values()):
