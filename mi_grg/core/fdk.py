@@ -180,7 +180,3 @@ def fdk(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> np.nd
         float32 [x, y, z] densities in the units of the ground truth.
     """
     return np.array(fdk_dr(proj, geometry, angles, filter).numpy(), copy=True)
-
-
-fbp = fdk  # the parallel-beam case is selected by geometry.mode
-

@@ -76,8 +76,8 @@ def segment_lanes(counts, skip: int, total: int):
     k = dr.arange(UInt32, dr.width(counts))
     marker = dr.zeros(UInt32, total)
     # total changes with every view and block: as a literal (in the comparison, or the
-    # per-thread copies of the LLVM backend's default ReduceMode.Expand) it made a new
-    # kernel, compiled at 6-8 ms, on every projection and TV block
+    # per-thread copies of the LLVM backend's default ReduceMode.Expand) it would make a
+    # new kernel, compiled anew, on every projection and TV block
     in_range = pos < dr.opaque(UInt32, total)
     dr.scatter_add(marker, UInt32(1), pos, active=(k > 0) & in_range, mode=dr.ReduceMode.Local)
     slot = dr.prefix_reduce(dr.ReduceOp.Add, marker, exclusive=False)

@@ -100,7 +100,8 @@ def read_exr(path) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- helpers
-def _json_default(obj):
+def json_default(obj):
+    """JSON for what NumPy and pathlib hand over: scalars, arrays (as lists), paths."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -336,7 +337,7 @@ def save_case(case: Case, out_dir, exr: bool = False) -> Path:
         raise DatasetError(f"case.info['scanner_extras'] must not override geometry keys {clash}")
 
     try:   # before writing anything
-        json.dumps(info, default=_json_default, allow_nan=False)
+        json.dumps(info, default=json_default, allow_nan=False)
     except (TypeError, ValueError) as e:
         raise DatasetError(f"case.info must be JSON serialisable with finite numbers ({e})") \
             from e
@@ -368,5 +369,5 @@ def save_case(case: Case, out_dir, exr: bool = False) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     if vol is not None:
         np.save(out / VOL_NAME, vol)
-    (out / META_NAME).write_text(json.dumps(meta, indent=4, default=_json_default))
+    (out / META_NAME).write_text(json.dumps(meta, indent=4, default=json_default))
     return out

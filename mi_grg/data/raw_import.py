@@ -716,7 +716,7 @@ def _reference(proj_all, vol_geo: Geometry, opts: dict, vol_gt, unit: str) -> tu
 
 def _write(out: Path, case: Case, record: dict, check: bool, proj_all, vol_geo) -> None:
     """The case, import.json and check.png, replacing ``out`` only once all are written."""
-    from mi_grg.data.dataset import _json_default, save_case
+    from mi_grg.data.dataset import json_default, save_case
     with replaced_dir(out, "import") as tmp:
         save_case(case, tmp)
         if case.vol_gt is not None:   # the reference as CT tools open it, in the scan's unit
@@ -726,7 +726,7 @@ def _write(out: Path, case: Case, record: dict, check: bool, proj_all, vol_geo) 
         if check:
             write_check(tmp / CHECK_PNG, proj_all, vol_geo, case.vol_gt)
             record["check"] = CHECK_PNG
-        (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=2, default=_json_default))
+        (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=2, default=json_default))
 
 
 def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,

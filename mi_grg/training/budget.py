@@ -32,8 +32,8 @@ With ``time_budget = SECONDS`` the trainer does not take its iteration count fro
 
 The budget covers the trainer, from De-Init to the returned state's files, on the wall
 clock: in a time_budget run the research log's 3-D PSNR (when the case has a ground truth)
-counts and is priced (at 256^3 one costs about 11 s; elsewhere the trainer leaves it out
-of ``train_seconds``); the volume and scores that ``mi_grg.reconstruct`` computes
+counts and is priced (at 256^3 one is a sizeable part of the loop; elsewhere the trainer
+leaves it out of ``train_seconds``); the volume and scores that ``mi_grg.reconstruct`` computes
 afterwards are not part of it (``RESERVE`` leaves room for them).
 metrics.json ``method_info.time_plan`` records the probe, the plan and the loop's share.
 ``BudgetPlanner`` holds one run's plan; the trainer asks it and applies its answers.

@@ -160,6 +160,31 @@ def _bbox(bbox) -> np.ndarray:
     return b
 
 
+class _Rows:
+    """The rows of a densification before pruning, [originals | clone copies | first
+    children | second children] (m = n + nc + 2 ns), and each row's source Gaussian."""
+
+    def __init__(self, n: int, clone, split):
+        ci = dr.compress(clone)
+        si = dr.compress(split)
+        nc, ns = dr.width(ci), dr.width(si)
+        self.nc, self.ns, self.m = nc, ns, n + nc + 2 * ns
+        row = dr.arange(mi.UInt32, self.m)
+        # The counts as opaque variables: as literals they made new kernels at each
+        # densification (compiled every time, since they change every time)
+        n_o, nnc_o = dr.opaque(mi.UInt32, n), dr.opaque(mi.UInt32, n + nc)
+        self.is_orig = row < n_o
+        self.is_clone = (row >= n_o) & (row < nnc_o)
+        self.is_child = row >= nnc_o
+        src = dr.select(self.is_orig, row, 0)
+        if nc:
+            src = dr.select(self.is_clone, dr.gather(mi.UInt32, ci, row - n_o, self.is_clone), src)
+        if ns:
+            k = (row - nnc_o) % dr.opaque(mi.UInt32, ns)
+            src = dr.select(self.is_child, dr.gather(mi.UInt32, si, k, self.is_child), src)
+        self.src = src
+
+
 class PGADensifier:
     """Clone/split/prune with PGA's graph-augmented gradient (see the module docstring).
 
@@ -293,7 +318,35 @@ class PGADensifier:
     def densify_and_prune(self, raw: dict, optimizer: Adam | None, graph_term=None,
                           bbox=None, iteration: int = 0, seed: int | None = None):
         """Unconditional clone/split/prune (``step`` without the schedule check)."""
-        c = self.config
+        n, box = self._checked(raw, optimizer, bbox)
+        seed = self.seed if seed is None else int(seed)
+        raw = {k: dr.detach(v) for k, v in raw.items()}
+        phys = Gaussians.from_raw(raw)
+        clone, split, n_cand, capped = self._clone_and_split(phys, graph_term, n, box)
+        rows = _Rows(n, clone, split)
+        pos, rot, raw_s, raw_d = self._grown(raw, phys, rows, clone, seed, iteration)
+        kept = dr.compress(self._keep(box, rows, split, pos, rot, raw_s, raw_d))
+
+        out = {"positions": dr.gather(mi.Point3f, pos, kept),
+               "raw_scales": dr.gather(mi.Vector3f, raw_s, kept),
+               "raw_rotations": dr.gather(mi.Vector4f, rot, kept),
+               "raw_densities": dr.gather(mi.Float, raw_d, kept)}
+        for v in out.values():
+            dr.enable_grad(v)
+        dr.eval(out)
+        source = dr.gather(mi.UInt32, rows.src, kept)
+        if optimizer is not None:
+            optimizer.remap(source, dr.gather(mi.Bool, rows.is_orig, kept))
+        n_after = dr.width(kept)
+        self.reset(n_after)
+        info = {"densified": True, "iteration": int(iteration), "n_before": n,
+                "n_candidates": n_cand, "capped": capped, "n_clone": rows.nc,
+                "n_split": rows.ns, "n_pruned": rows.m - n_after - rows.ns, "n_after": n_after,
+                "source": source}
+        return out, info
+
+    def _checked(self, raw: dict, optimizer: Adam | None, bbox):
+        """(N, box as a [2, 3] array) after checking the call against the state."""
         n = _check_raw(raw)
         if n == 0:
             raise DensifyError("no Gaussians left to densify (all pruned?)")
@@ -307,10 +360,12 @@ class PGADensifier:
             raise DensifyError(f"the accumulators hold {self.size} Gaussians, raw has {n}")
         if optimizer is not None and optimizer.width() not in (None, n):
             raise DensifyError(f"the optimiser state has {optimizer.width()} rows, raw has {n}")
-        seed = self.seed if seed is None else int(seed)
-        raw = {k: dr.detach(v) for k, v in raw.items()}
-        phys = Gaussians.from_raw(raw)
+        return n, box
 
+    def _clone_and_split(self, phys: Gaussians, graph_term, n: int, box):
+        """(clone mask, split mask, candidates, capped): candidates by augmented gradient,
+        at most up to the cap; small ones are cloned, large ones split."""
+        c = self.config
         score = self.augmented_gradient(graph_term)
         cand = score >= c.tau_pos
         n_cand = int(dr.count(cand)[0])
@@ -322,28 +377,14 @@ class PGADensifier:
         smax = dr.maximum(dr.maximum(s.x, s.y), s.z)
         volume_size = float(np.max(box[1] - box[0]))
         thr = c.clone_scale_fraction * volume_size
-        clone = cand & (smax <= thr)
-        split = cand & (smax > thr)
-        ci = dr.compress(clone)
-        si = dr.compress(split)
-        nc, ns = dr.width(ci), dr.width(si)
+        return cand & (smax <= thr), cand & (smax > thr), n_cand, capped
 
-        # Rows before pruning: [originals | clone copies | first children | second children]
-        m = n + nc + 2 * ns
-        row = dr.arange(mi.UInt32, m)
-        # The counts as opaque variables: as literals they made new kernels (compiled at
-        # each densification, 0.1-0.2 s on the CPU) since they change every time
-        n_o, nnc_o = dr.opaque(mi.UInt32, n), dr.opaque(mi.UInt32, n + nc)
-        is_orig = row < n_o
-        is_clone = (row >= n_o) & (row < nnc_o)
-        is_child = row >= nnc_o
-        src = dr.select(is_orig, row, 0)
-        if nc:
-            src = dr.select(is_clone, dr.gather(mi.UInt32, ci, row - n_o, is_clone), src)
-        if ns:
-            k = (row - nnc_o) % dr.opaque(mi.UInt32, ns)
-            src = dr.select(is_child, dr.gather(mi.UInt32, si, k, is_child), src)
-
+    def _grown(self, raw, phys, rows, clone, seed: int, iteration: int):
+        """(positions, raw rotations, raw scales, raw densities) of every row: clones and
+        the originals they copy halve their density; children shrink and move by a draw
+        from their parent's Gaussian."""
+        c = self.config
+        src, is_orig, is_clone, is_child = rows.src, rows.is_orig, rows.is_clone, rows.is_child
         rho = dr.gather(mi.Float, phys.densities, src)
         halve = is_clone | is_child | (is_orig & dr.gather(mi.Bool, clone, src))
         rho_new = dr.select(halve, 0.5 * rho, rho)
@@ -351,9 +392,9 @@ class PGADensifier:
         sc_new = dr.select(is_child, sc * (1.0 / c.split_scale_factor), sc)
         pos = dr.gather(mi.Point3f, raw["positions"], src)
         rot = dr.gather(mi.Vector4f, raw["raw_rotations"], src)
-        if ns:
+        if rows.ns:
             q = dr.gather(mi.Vector4f, phys.rotations, src)
-            z = standard_normal3(m, seed, iteration)
+            z = standard_normal3(rows.m, seed, iteration)
             offset = mi.Vector3f(rotation_matrix(q) @ (sc * z))   # ~ N(0, R S^2 R^T)
             pos = dr.select(is_child, pos + offset, pos)
         # Changed rows go through the activations; unchanged rows keep raw bit-exactly.
@@ -363,8 +404,11 @@ class PGADensifier:
                           dr.gather(mi.Float, raw["raw_densities"], src))
         raw_s = dr.select(is_child, new_raw["raw_scales"],
                           dr.gather(mi.Vector3f, raw["raw_scales"], src))
+        return pos, rot, raw_s, raw_d
 
-        # Prune: split parents, low density, outside the (enlarged) bbox, non-finite.
+    def _keep(self, box, rows, split, pos, rot, raw_s, raw_d):
+        """Rows kept: not a split parent, dense enough, inside the (enlarged) bbox, finite."""
+        c = self.config
         lo = box[0] - c.bbox_margin * (box[1] - box[0])
         hi = box[1] + c.bbox_margin * (box[1] - box[0])
         inside = mi.Bool(True)
@@ -374,25 +418,8 @@ class PGADensifier:
                                         "raw_rotations": rot,
                                         "raw_densities": raw_d}).densities
         keep = inside & (rho_check >= c.min_density) & dr.isfinite(rho_check)
-        keep &= ~(is_orig & dr.gather(mi.Bool, split, src))
-        kept = dr.compress(keep)
-
-        out = {"positions": dr.gather(mi.Point3f, pos, kept),
-               "raw_scales": dr.gather(mi.Vector3f, raw_s, kept),
-               "raw_rotations": dr.gather(mi.Vector4f, rot, kept),
-               "raw_densities": dr.gather(mi.Float, raw_d, kept)}
-        for v in out.values():
-            dr.enable_grad(v)
-        dr.eval(out)
-        source = dr.gather(mi.UInt32, src, kept)
-        if optimizer is not None:
-            optimizer.remap(source, dr.gather(mi.Bool, is_orig, kept))
-        n_after = dr.width(kept)
-        self.reset(n_after)
-        info = {"densified": True, "iteration": int(iteration), "n_before": n,
-                "n_candidates": n_cand, "capped": capped, "n_clone": nc, "n_split": ns,
-                "n_pruned": m - n_after - ns, "n_after": n_after, "source": source}
-        return out, info
+        keep &= ~(rows.is_orig & dr.gather(mi.Bool, split, rows.src))
+        return keep
 
     @staticmethod
     def _top_candidates(score, cand, budget: int):

@@ -205,8 +205,8 @@ def neighbour_table(graph: Graph):
     ``build_graph``'s graphs): (D, nbr mi.UInt32 [D*N], w mi.Float [D*N]), entry m*N + i
     the m-th neighbour of i and its weight; unused entries hold i itself at weight 0.
     Per-node sums then need gathers only: a scatter-add over the edges, which the LLVM
-    backend resolves lane by lane, cost 3 ms per training iteration in the Laplacian's
-    gradient at 64^3 (294k edges). Built once per graph (cached on it)."""
+    backend resolves lane by lane, was a visible share of the Laplacian's gradient on
+    every training iteration. Built once per graph (cached on it)."""
     if graph.table is None:
         n, UInt32 = graph.n, mi.UInt32
         count = dr.zeros(UInt32, n)

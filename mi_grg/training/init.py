@@ -137,7 +137,7 @@ def auto_density_rescale(positions: np.ndarray, scales: np.ndarray, values: np.n
 
     F_i = sum_j values_j exp(-|p_i - p_j|^2 / (2 s_j^2)) over the ``n_neighbors`` nearest
     centres of p_i (itself included; farther kernels are neglected -- with neighbour
-    spacing ~ s they lie beyond ~3 s, where exp(-9/2) ~ 1 %); c = sum v F / sum F^2.
+    spacing ~ s they lie beyond ~3 standard deviations, where exp(-9/2) ~ 1 %); c = sum v F / sum F^2.
     """
     from scipy.spatial import cKDTree
     p = np.asarray(positions, dtype=np.float64)

@@ -180,6 +180,65 @@ def _cell_counts(p, lv):
     return dr.gather(mi.UInt32, counts, b)
 
 
+def _scan_candidate(grid, qp, qi, j, scan, tx, ty, tz, bd: list, bi: list, k: int):
+    """Lanes with ``scan``: candidate j of the open cell (tx, ty, tz) enters the sorted
+    register lists ``bd`` / ``bi`` (updated in place) if it is nearer. Returns the next j."""
+    UInt32, Int32 = mi.UInt32, mi.Int32
+    r0 = dr.gather(mi.Vector4f, grid["prec"], 2 * j, scan)       # p.xyz, index
+    r1 = dr.gather(mi.Vector4f, grid["prec"], 2 * j + 1, scan)   # cell.xyz, 0
+    cand = dr.reinterpret_array(UInt32, r0.w)
+    same = (scan & (dr.reinterpret_array(Int32, r1.x) == tx)
+            & (dr.reinterpret_array(Int32, r1.y) == ty)
+            & (dr.reinterpret_array(Int32, r1.z) == tz) & (cand != qi))
+    dx, dy, dz = r0.x - qp.x, r0.y - qp.y, r0.z - qp.z
+    cd = dr.select(same, dr.fma(dx, dx, dr.fma(dy, dy, dz * dz)), _INF)
+    ci = cand
+    for s in range(k):  # insertion into the sorted register list
+        sw = cd < bd[s]
+        nd, ni = dr.select(sw, cd, bd[s]), dr.select(sw, ci, bi[s])
+        cd, ci = dr.select(sw, bd[s], cd), dr.select(sw, bi[s], ci)
+        bd[s], bi[s] = nd, ni
+    return dr.select(scan, j + 1, j)
+
+
+def _open_cell(grid, lv, qp, c, heavy, opening, cell, skipped, j, end, tx, ty, tz, dk):
+    """Lanes with ``opening``: open the next neighbour cell (pass 1: (cell + 13) % 27, so
+    offset 0,0,0 comes first; pass 2: the lowest deferred one), unless its bucket's box
+    cannot beat the k-th distance ``dk``. Returns (cell, skipped, j, end, tx, ty, tz)."""
+    UInt32, Int32 = mi.UInt32, mi.Int32
+    res_i = lv["res_i"]
+    pass1 = cell < 27
+    cc = dr.select(pass1, (cell + 13) % 27, dr.tzcnt(skipped))
+    bit = UInt32(1) << cc
+    off = [Int32(cc % 3) - 1, Int32((cc // 3) % 3) - 1, Int32(cc // 9) - 1]
+    nb = [c[a] + off[a] for a in range(3)]
+    inside = (nb[0] >= 0) & (nb[0] < res_i) & (nb[1] >= 0) & (nb[1] < res_i) \
+        & (nb[2] >= 0) & (nb[2] < res_i)
+    b = _bucket(nb[0], nb[1], nb[2], lv)
+    look = opening & inside
+    # Skip buckets whose points' box cannot beat the current k-th distance. The gap is
+    # a difference of floats (relative error <= eps), hence the relative slack.
+    b0 = dr.gather(mi.Vector4f, grid["brec"], 2 * b, look)      # lo.xyz, hi.x
+    b1 = dr.gather(mi.Vector4f, grid["brec"], 2 * b + 1, look)  # hi.yz, start, end
+    gx = dr.maximum(dr.maximum(b0.x - qp.x, qp.x - b0.w), 0.0)
+    gy = dr.maximum(dr.maximum(b0.y - qp.y, qp.y - b1.x), 0.0)
+    gz = dr.maximum(dr.maximum(b0.z - qp.z, qp.z - b1.y), 0.0)
+    look &= dr.fma(gx, gx, dr.fma(gy, gy, gz * gz)) * (1 - 1e-5) <= dk
+    s0 = dr.reinterpret_array(UInt32, b1.z)
+    s1 = dr.reinterpret_array(UInt32, b1.w)
+    defer = look & pass1 & (s1 - s0 > heavy)
+    take = look & ~defer
+    j = dr.select(take, s0, j)
+    end = dr.select(take, s1, end)
+    tx = dr.select(opening, nb[0], tx)
+    ty = dr.select(opening, nb[1], ty)
+    tz = dr.select(opening, nb[2], tz)
+    skipped = dr.select(defer, skipped | bit, skipped)
+    skipped = dr.select(opening & ~pass1, skipped & ~bit, skipped)
+    cell = dr.select(opening & pass1, cell + 1, cell)
+    return cell, skipped, j, end, tx, ty, tz
+
+
 def _query_level(p, q, lv, grid, k):
     """k nearest neighbours of points q (UInt32 indices) among the 27 cells around each one
     at one level, plus the certificate that the k-th distance is exact.
@@ -203,55 +262,11 @@ def _query_level(p, q, lv, grid, k):
     def body(cell, skipped, j, end, tx, ty, tz, bd, bi, steps):
         bd, bi = list(bd), list(bi)
         steps += 1
-        # -- scan one candidate of the open cell
+        # scan one candidate of the open cell, or open the next cell
         scan = j < end
-        r0 = dr.gather(mi.Vector4f, grid["prec"], 2 * j, scan)       # p.xyz, index
-        r1 = dr.gather(mi.Vector4f, grid["prec"], 2 * j + 1, scan)   # cell.xyz, 0
-        cand = dr.reinterpret_array(UInt32, r0.w)
-        same = (scan & (dr.reinterpret_array(Int32, r1.x) == tx)
-                & (dr.reinterpret_array(Int32, r1.y) == ty)
-                & (dr.reinterpret_array(Int32, r1.z) == tz) & (cand != qi))
-        dx, dy, dz = r0.x - qp.x, r0.y - qp.y, r0.z - qp.z
-        cd = dr.select(same, dr.fma(dx, dx, dr.fma(dy, dy, dz * dz)), _INF)
-        ci = cand
-        for s in range(k):  # insertion into the sorted register list
-            sw = cd < bd[s]
-            nd, ni = dr.select(sw, cd, bd[s]), dr.select(sw, ci, bi[s])
-            cd, ci = dr.select(sw, bd[s], cd), dr.select(sw, bi[s], ci)
-            bd[s], bi[s] = nd, ni
-        j = dr.select(scan, j + 1, j)
-        # -- or open the next neighbour cell (pass 1: (cell + 13) % 27, so offset 0,0,0
-        # comes first; pass 2: the lowest deferred one)
-        opening = ~scan
-        pass1 = cell < 27
-        cc = dr.select(pass1, (cell + 13) % 27, dr.tzcnt(skipped))
-        bit = UInt32(1) << cc
-        off = [Int32(cc % 3) - 1, Int32((cc // 3) % 3) - 1, Int32(cc // 9) - 1]
-        nb = [c[a] + off[a] for a in range(3)]
-        inside = (nb[0] >= 0) & (nb[0] < res_i) & (nb[1] >= 0) & (nb[1] < res_i) \
-            & (nb[2] >= 0) & (nb[2] < res_i)
-        b = _bucket(nb[0], nb[1], nb[2], lv)
-        look = opening & inside
-        # Skip buckets whose points' box cannot beat the current k-th distance. The gap is
-        # a difference of floats (relative error <= eps), hence the relative slack.
-        b0 = dr.gather(mi.Vector4f, grid["brec"], 2 * b, look)      # lo.xyz, hi.x
-        b1 = dr.gather(mi.Vector4f, grid["brec"], 2 * b + 1, look)  # hi.yz, start, end
-        gx = dr.maximum(dr.maximum(b0.x - qp.x, qp.x - b0.w), 0.0)
-        gy = dr.maximum(dr.maximum(b0.y - qp.y, qp.y - b1.x), 0.0)
-        gz = dr.maximum(dr.maximum(b0.z - qp.z, qp.z - b1.y), 0.0)
-        look &= dr.fma(gx, gx, dr.fma(gy, gy, gz * gz)) * (1 - 1e-5) <= bd[k - 1]
-        s0 = dr.reinterpret_array(UInt32, b1.z)
-        s1 = dr.reinterpret_array(UInt32, b1.w)
-        defer = look & pass1 & (s1 - s0 > heavy)
-        take = look & ~defer
-        j = dr.select(take, s0, j)
-        end = dr.select(take, s1, end)
-        tx = dr.select(opening, nb[0], tx)
-        ty = dr.select(opening, nb[1], ty)
-        tz = dr.select(opening, nb[2], tz)
-        skipped = dr.select(defer, skipped | bit, skipped)
-        skipped = dr.select(opening & ~pass1, skipped & ~bit, skipped)
-        cell = dr.select(opening & pass1, cell + 1, cell)
+        j = _scan_candidate(grid, qp, qi, j, scan, tx, ty, tz, bd, bi, k)
+        cell, skipped, j, end, tx, ty, tz = _open_cell(grid, lv, qp, c, heavy, ~scan, cell,
+                                                       skipped, j, end, tx, ty, tz, bd[k - 1])
         return cell, skipped, j, end, tx, ty, tz, tuple(bd), tuple(bi), steps
 
     state = (dr.zeros(UInt32, m), dr.zeros(UInt32, m), dr.zeros(UInt32, m), dr.zeros(UInt32, m),

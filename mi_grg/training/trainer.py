@@ -69,15 +69,13 @@ def iteration_rule(geometry) -> int:
     3000 x n / 64 up to twice that (96^3 -> 4500, 128^3 and up -> 6000).
 
     Why: the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20 min,
-    256^3 <= 60 min per run) are the limit, not the model. At 64^3 3000 iterations take
-    about the 5 minutes (shepp gr 309 s with the packet kernels). At 128^3 a run of 6000
-    takes 8-15 min (the six cells of docs/benchmarks.md, "The rule at 128^3"): shells and
-    shepp were still rising and gain +0.4 to +2.0 dB over 4243 (3000 x sqrt(2)); the sparse
-    needles peak early and lose (gr -0.4, r2 -1.5 dB), and no projection-domain measure
-    we found tells them apart; mean +0.56 dB. 256^3 keeps the 6000 it had (0.57 s per
-    iteration there before the packet kernels, 5x one at 64^3). The schedule (densification
-    window, evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans
-    the count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
+    256^3 <= 60 min per run) are the limit, not the model. At 64^3 3000 iterations fit the
+    5 minutes; at 128^3 6000 fit the 20, and shells and shepp were still improving where
+    the sparse needles peak early and lose a little, which no projection-domain measure
+    we found tells apart (docs/benchmarks.md, "The rule at 128^3" and "The iteration rule
+    re-derived"). 256^3 keeps the 6000 it had. The schedule (densification window,
+    evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans the
+    count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
     """
     return ITERATION_RULES[ITERATION_RULE](max(geometry.nVoxel))
 
@@ -220,7 +218,8 @@ class Trainer:
         self.iterations = int(iterations)
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         self.sched = sched = _scaled(cfg, self.iterations)
-        # Views (issue 26): held out while the stop rule decides, trained once it is done
+        # Views: held out while the stop rule decides, trained once it is done, so that
+        # every view counts (docs/benchmarks.md, "Every view counts")
         # (the research rule monitor_3d judges the ground truth: the views stay held out).
         self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
                                   1.0 if cfg.monitor_3d else cfg.holdout_until,
@@ -501,8 +500,8 @@ class Trainer:
         and at the last while the held-out views decide (``views.decides``), their PSNR,
         which the stopper judges once densification has ended (``monitor_3d``: the 3-D
         PSNR instead). Fills ``row`` (psnr_3d, heldout_psnr). On a stop: the state's
-        ``stopped_by`` when the run ends here, else (issue 26) the kept state, from which
-        training goes on on every view. Returns the state to continue from."""
+        ``stopped_by`` when the run ends here, else the kept state, from which training
+        goes on on every view. Returns the state to continue from."""
         cfg, st = self.cfg, self.state
         is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
         want_3d = self.case.vol_gt is not None and (
