@@ -196,7 +196,7 @@ class Trainer:
         if cfg.time_budget is not None:
             self.planner = self._budget_planner()
             if resuming:      # the recorded plan, replayed (another machine would plan otherwise)
-                for r in replans_of(plan):
+                for r in replans_of(self.planner.plan):
                     self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
             else:
                 self.state.time_plan = self.planner.plan_run(len(g), lambda: self._probe(g),
@@ -218,9 +218,9 @@ class Trainer:
         self.iterations = int(iterations)
         # The config's schedule is the paper's, for 30k iterations: scale it to this run.
         self.sched = sched = _scaled(cfg, self.iterations)
-        # Views: held out while the stop rule decides, trained once it is done, so that
-        # every view counts (docs/benchmarks.md, "Every view counts")
-        # (the research rule monitor_3d judges the ground truth: the views stay held out).
+        # Views: held out while the stop rule decides, then trained, so that every view
+        # counts (docs/benchmarks.md, "Every view counts"); the research rule monitor_3d
+        # judges the ground truth, so there the views stay held out.
         self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
                                   1.0 if cfg.monitor_3d else cfg.holdout_until,
                                   self.iterations, sched["eval_every"], cfg.holdout_catch_up)
