@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_grg.data.case import Case
+from mi_grg.data.dataset import json_default
 
 # name -> "module:function"; imported on use so that one method's import cost (or a
 # missing optional dependency) never affects the others.
@@ -186,19 +187,9 @@ def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None, formats=
     write_case_volume(out, "vol_pred", vol, metrics["geometry"],
                       (metrics.get("data") or {}).get("units") or {}, formats)
     with open(out / "metrics.json", "w") as f:
-        json.dump(metrics, f, indent=2, default=_json_default)
+        json.dump(metrics, f, indent=2, default=json_default)
     title = metrics.get("method", "")
     if "psnr_3d" in metrics:
         title += f"   PSNR {metrics['psnr_3d']:.2f} dB   SSIM {metrics['ssim_3d']:.3f}"
     slice_montage(out / "slices.png", vol, vol_gt, title=title)
     return out
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"cannot write {type(o).__name__} to JSON")
