@@ -1,4 +1,4 @@
-"""Held-out-stopped classical baselines against their oracle (issues 22 and 26).
+"""Held-out-stopped classical baselines against their oracle.
 
 For suite-like cases (64^3, 96^2 detector, 25 noisy views, the cases of
 experiments/suite_cpu.json), runs SART, ASD-POCS and PDHG with their default protocol
@@ -127,16 +127,18 @@ def markdown(result: dict) -> str:
              "setting run on all 25 views. PDHG: gr's early-stopping rule on the held-out "
              "PSNR. SART / ASD-POCS: the discrepancy principle, the first sweep whose fitted-"
              "view residual reaches the noise level measured on the held-out views (the "
-             "lowest held-out mean squared residual), and ASD-POCS's TV weight by held-out "
-             "PSNR at that sweep (mi_grg.protocol.heldout). **Oracle** = the best 3-D PSNR "
+             "lowest held-out mean squared residual). The TV weights (ASD-POCS's alpha at its "
+             "discrepancy sweep, PDHG's lam at its kept iteration) by the one-standard-error "
+             "rule: the largest weight whose held-out PSNR lies within one standard error "
+             "(over the held-out views) of the best (mi_grg.protocol.heldout). **Oracle** = the best 3-D PSNR "
              "over the chosen setting's sweeps on all views, picked with the ground truth "
              "(reported only; it decides nothing); gap = oracle − result. Time = the "
              "result's wall-clock seconds (the held-out decision included; the oracle's "
              "extra sweeps and scoring excluded). Fixed rows: the paper's 10 sweeps at "
              "TIGRE's defaults.", "",
              "**Weights tried**: the TV weight's search on a half-decade log grid, widened past "
-             "a winning end (mi_grg.protocol.search); *interior* = the chosen weight has a "
-             "tried neighbour on both sides.", "",
+             "the end the rule chose (mi_grg.protocol.search); *interior* = the chosen "
+             "weight has a tried neighbour on both sides.", "",
              "| case | run | 3-D PSNR | SSIM | oracle (sweep) | gap (dB) | chosen | "
              "weights tried | time (s) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:

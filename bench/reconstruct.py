@@ -65,9 +65,11 @@ def one(phantom: str, n: int, method: str, options: dict, logs: str | None = Non
     if method in ("r2", "gr") and options:
         out["options"] = dict(sorted(options.items()))
     info = m.get("method_info")
-    if info:
+    if info and method in ("r2", "gr"):
         out.update({k: info[k] for k in ("iterations_run", "iterations_planned", "stopped_by",
                                          "n_gaussians")})
+    elif info and "chosen" in info:        # a classical method's held-out decision
+        out["chosen"] = info["chosen"]
     return out
 
 

@@ -456,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="out/demo")
     d.add_argument("--n", type=int, default=64)
     d.add_argument("--det", type=int, default=96)
-    d.add_argument("--methods", default="fdk,sart,asd-pocs,gr")
+    d.add_argument("--methods", default="fdk,sart,asd-pocs,pdhg,gr")
     d.set_defaults(func=cmd_demo)
     return p
 

@@ -153,7 +153,7 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, forma
     if not np.all(np.isfinite(vol)):
         raise RuntimeError(f"method {method!r} returned NaN/Inf voxels")
     # An oracle's sweeps and scoring (ground truth; they decide nothing) are not the
-    # method's time: method_info["oracle_seconds"] (mi_grg.classical.heldout).
+    # method's time: method_info["oracle_seconds"] (mi_grg.protocol.heldout).
     seconds -= float((info or {}).get("oracle_seconds") or 0.0)
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),

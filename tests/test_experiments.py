@@ -1,4 +1,4 @@
-"""mi_grg.lab (suite, plan, runner, report) end to end on a tiny suite (16^3, 4 views, fdk + sart):
+"""mi_grg.lab (suite, plan, runner, report) end to end on a tiny suite (16^3, 9 views, fdk + sart):
 resumability, parallel = serial, failure isolation, and a report whose numbers are read back
 independently from metrics.json."""
 import json
@@ -31,7 +31,7 @@ def _suite(tmp: Path, extra=None, methods=("fdk", "sart")) -> Path:
     x = -1 + (np.arange(20) + 0.5) / 10
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     np.save(tmp / "blob.npy", ((X ** 2 + (Y / 0.6) ** 2 + Z ** 2) < 0.5).astype(np.float32) * .8)
-    common = {"views": 4, "test_views": 2, "n": 16, "det": 24, "mode": "cone"}
+    common = {"views": 9, "test_views": 2, "n": 16, "det": 24, "mode": "cone"}
     suite = {"name": "tiny", "variant": "llvm_ad_mono",
              "method_options": {"sart": {"n_iter": 2}},
              "experiments": {"table1": {"methods": list(methods)}},
@@ -82,7 +82,7 @@ def test_table1_runs_and_data(serial):
             pred = np.load(d / "vol_pred.npy")
             psnr = 10 * np.log10(1.0 / np.mean((pred.astype(np.float64) - gt) ** 2))
             assert m["psnr_3d"] == pytest.approx(psnr, abs=1e-6)
-            assert m["nVoxel"] == [16, 16, 16] and m["n_train_views"] == 4
+            assert m["nVoxel"] == [16, 16, 16] and m["n_train_views"] == 9
     assert _metrics(out, "shepp", "sart")["options"]["n_iter"] == 2
     # sart stops on held-out views; the fixed row runs the paper's sweeps
     assert _metrics(out, "shepp", "sart")["method_info"]["protocol"] == "heldout"
@@ -91,7 +91,7 @@ def test_table1_runs_and_data(serial):
     # the data are what the suite says: same as simulating directly
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
-    geo = default_geometry(n=16, det=24, views=4)
+    geo = default_geometry(n=16, det=24, views=9)
     direct = simulate_case("shepp", geo, default_test_angles(2), NoiseModel(1e4, 10.0), seed=0)
     case = mi_grg.load_case(out / "data" / "shepp")
     np.testing.assert_allclose(case.train, direct.train, atol=1e-6)

@@ -115,8 +115,9 @@ def test_oracle_is_reported_and_decides_nothing():
 def test_methods_default_to_the_heldout_rule(fn):
     case, _ = small_case(with_gt=False)
     vol, info = fn(case, n_iter=4, progress=False)
-    # (ASD-POCS's TV steps follow the positivity step, so tiny negatives stay)
-    assert vol.shape == case.geometry.nVoxel and vol.min() >= -0.01 * vol.max()
+    # (ASD-POCS's TV steps follow the positivity step, so small negatives stay; they grow
+    # with the TV weight the one-SE rule chooses, here alpha 0.06)
+    assert vol.shape == case.geometry.nVoxel and vol.min() >= -0.02 * vol.max()
     assert info["protocol"] == "heldout" and info["final_views"] == list(range(9))
     assert 1 <= info["chosen"]["sweeps"] <= 4 and "why" in info
     if fn is reconstruct_asd_pocs:

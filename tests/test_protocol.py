@@ -69,6 +69,44 @@ def test_weight_search_widens_until_its_choice_is_interior(best, widened):
     assert (s["added_above"] > 0) == (widened == "above")
 
 
+def test_one_standard_error_rule_takes_the_largest_weight_the_views_cannot_tell_apart():
+    """Held-out PSNR rising a little as the weight falls (as weaker regularisation keeps
+    improving projection prediction): the best is the smallest weight, but the one-SE rule
+    takes the largest weight within one standard error of it, computed from the best
+    state's per-view PSNRs, and widens upwards only when that one sits at the top."""
+    case, x = small_case()
+    ramp = np.linspace(0, 1, 12, dtype=np.float32)[:, None, None] * np.ones((12,) * 3,
+                                                                             np.float32)
+
+    def run(proj, geo, n_iter, callback, progress, lam):
+        # error grows with log10(lam): smaller weights predict the held-out views better
+        vol = x + (0.02 + 0.01 * (math.log10(lam) + 4)) * ramp
+        for it in range(n_iter):
+            if callback(it, vol):
+                break
+        return vol
+
+    grid = LogGrid("lam", [0.001, 0.003, 0.01], max_extend=3, one_se=True)
+    _, info = run_heldout(case, run, grid, project=forward_project, max_sweeps=3, name="t",
+                          progress=False)
+    cands = {c["setting"]["lam"]: c for c in info["candidates"]}
+    best = max(cands.values(), key=lambda c: c["heldout_psnr"])
+    assert best["setting"]["lam"] == min(cands)              # plain argmax: the lowest
+    views = np.asarray(dict(map(tuple, best["heldout_psnr_views"]))[best["kept_sweep"]])
+    se = np.std(views, ddof=1) / np.sqrt(len(views))
+    assert best["one_se"]["standard_error_db"] == pytest.approx(se)
+    within = [lam for lam, c in cands.items() if c["heldout_psnr"] >= best["heldout_psnr"] - se]
+    chosen = info["chosen"]["setting"]["lam"]
+    assert chosen == max(within) and chosen > best["setting"]["lam"]
+    assert info["search"]["rule"] == "one standard error" and "one standard error" in info["why"]
+    # the plain rule on the same runs widens downwards to the smallest weight instead
+    grid = LogGrid("lam", [0.001, 0.003, 0.01], max_extend=3)
+    _, plain = run_heldout(case, run, grid, project=forward_project, max_sweeps=3, name="t",
+                           progress=False)
+    assert plain["chosen"]["setting"]["lam"] == min(plain["search"]["values_tried"])
+    assert not plain["search"]["interior"] and plain["search"]["added_below"] == 3
+
+
 def test_weight_search_says_when_its_widening_is_spent():
     case, x = small_case()
     run, _ = weighted_method(x, 1e-9)
@@ -225,3 +263,38 @@ def test_gr_paper_preset_holds_the_papers_configuration():
              "n_points": 50000, "init_tau": 0.001, "lambda_ssim": 0.25, "lambda_tv": 0.05,
              "tv_block": 32, "densify_grad_threshold": 5e-5, "stop_drop": 0.005}
     assert {k: getattr(cfg, k) for k in paper} == paper
+
+
+def test_pdhg_init_reads_only_the_fitted_views():
+    """gr's De-Init from PDHG (``init="pdhg"``): PDHG decides on the fitted views' own
+    split, so the run's held-out views (replaced by noise here) change nothing at the
+    start, and what PDHG chose is recorded."""
+    import drjit as dr
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    from mi_grg.training.config import make_config
+    from mi_grg.training.trainer import Trainer
+    geo = default_geometry(n=16, det=24, views=12)
+    case = simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=0)
+    cfg = make_config("gr", init="pdhg", iterations=20, n_points=300, holdout_every=4)
+    poisoned = Case(geometry=case.geometry, train=case.train.copy())
+    starts = []
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        for c in (case, poisoned):
+            t = Trainer(c, cfg, progress=False)
+            if c is poisoned:
+                assert t.held_idx.tolist() == starts[0][1]
+            else:
+                c_held = t.held_idx
+                poisoned.train[c_held] = np.random.default_rng(0).random(
+                    poisoned.train[c_held].shape).astype(np.float32)
+            starts.append(({k: np.asarray(v) for k, v in t.state.raw.items()},
+                           t.held_idx.tolist(), t.init_info))
+    finally:
+        dr.set_thread_count(threads)
+    (a, held, info), (b, _, _) = starts
+    assert len(held) == 3 and info["volume"] == "pdhg" and "lam" in info["pdhg"]["chosen"]["setting"]
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)

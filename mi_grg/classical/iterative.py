@@ -285,11 +285,6 @@ def sart(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, blocksize: 
     return _to_numpy(x, geometry)
 
 
-def os_sart(proj, geometry: Geometry, angles=None, *, blocksize: int = 20, **kw):
-    """OS-SART: ``sart`` with subsets of ``blocksize`` views (TIGRE's default 20)."""
-    return sart(proj, geometry, angles, blocksize=blocksize, **kw)
-
-
 def asd_pocs(proj, geometry: Geometry, angles=None, *, n_iter: int = 10, tv_iters: int = 20,
              alpha: float = 0.002, alpha_red: float = 0.95, r_max: float = 0.95,
              epsilon=None, relaxation: float = 1.0, relaxation_decay: float = 0.99,
@@ -389,7 +384,8 @@ def _as_grid(value, name: str, default) -> list:
 def weight_grid(value, name: str, default):
     """What ``run_heldout`` searches for one weight: a number fixes it (a list of one
     setting); None (``default``) or a list is a ``LogGrid`` that widens past a winning end
-    until its choice is interior (``mi_grg.protocol.search``). A list holding 0 (no
+    until its choice is interior (``mi_grg.protocol.search``), the choice made by the
+    one-standard-error rule (``mi_grg.protocol.heldout``). A list holding 0 (no
     regulariser), which no log grid can widen, is tried as given."""
     vals = _as_grid(value, name, default)
     if value is not None and not isinstance(value, (list, tuple)):
@@ -399,7 +395,7 @@ def weight_grid(value, name: str, default):
             raise ValueError(f"{name}: a grid needs at least two distinct values, got "
                              f"{value!r} (give one number to fix the weight)")
         return [{name: v} for v in vals]
-    return LogGrid(name, vals, max_extend=GRID_EXTEND)
+    return LogGrid(name, vals, max_extend=GRID_EXTEND, one_se=True)
 
 
 def _one(value, name: str) -> float:

@@ -20,16 +20,14 @@ noise margin: it does not call such a state worse); "best" keeps the literal max
 The margin is also at least ``noise`` x sigma, sigma the held-out PSNR's own scatter from
 one evaluation to the next (``scatter``: a robust estimate from the third differences of
 every evaluation the stopper has seen, judged or not). Why: the best value is the maximum
-of noisy evaluations, and 0.5 % of ~26 dB (0.13 dB) is less than one sigma of the scatter
-measured in our runs (median 0.15 dB, up to 0.53): at 128^3 the rule stopped a shepp run at
-1750 of 3000 whose held-out PSNR, followed to the end with the views still held out, rose
-from 26.45 to 27.41 dB (and the 3-D PSNR all the way). TrainConfig's ``stop_noise`` is 3:
-on synthetic curves it cuts the stops of a noisy rising curve 20-30 fold and delays the
-stop of a real decline by about four evaluations (bench/stop_rule.py,
-docs/bench/stop_rule.md). Why 3, not 2: the third differences see only the fast part of
-the scatter, and SGD's is correlated over evaluations (a run of similar views moves the
-state for a while): r2 at 128^3 dipped 0.52 dB (4.6 x its estimated scatter) and rose again,
-which 2 x would have stopped on one of the two devices. 0 is the rule as it was.
+of noisy evaluations, and the drop fraction alone is smaller than one sigma of the scatter
+seen in real runs, so it stopped runs whose held-out and 3-D PSNR went on rising
+(docs/benchmarks.md, "Are the 128^3 stops right?"). ``stop_noise`` is 3: on synthetic
+curves it cuts the false stops of a noisy rising curve many fold and delays the stop of a
+real decline by a few evaluations (bench/stop_rule.py, docs/bench/stop_rule.md). Why 3,
+not 2: the third differences see only the fast part of the scatter, and SGD's is
+correlated over evaluations (a run of similar views moves the state for a while), so a
+dip of several estimated sigmas can still recover. 0 is the rule as it was.
 """
 from __future__ import annotations
 

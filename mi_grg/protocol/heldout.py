@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mi_grg.evaluation.metrics import psnr_3d, psnr_proj
+from mi_grg.evaluation.metrics import psnr_3d, psnr_proj_views
 from mi_grg.protocol.discrepancy import discrepancy_stop, mse, noise_level
 from mi_grg.protocol.early_stop import STOP_RULE, StopRule
 from mi_grg.protocol.search import LogGrid
@@ -93,7 +93,7 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
                   name: str, progress: bool) -> dict:
     """One candidate on the fitted views, judged after every ``eval_every`` sweeps."""
     stopper = rule.stopper()
-    last, residuals = [0], []
+    last, residuals, per_view = [0], [], []
     geo = d.case.geometry
 
     def judge(it, vol):
@@ -105,7 +105,9 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
         if d.discrepancy:     # [sweep, held-out MSE, fitted-view MSE]
             residuals.append([sweep, mse(pred, d.target),
                               mse(d.project(vol, d.geo_fit, d.geo_fit.angles), d.fit_data)])
-        return stopper.update(sweep, psnr_proj(pred, d.target)) == "stop"
+        views = psnr_proj_views(pred, d.target)
+        per_view.append([sweep, views.tolist()])
+        return stopper.update(sweep, float(np.nanmean(views))) == "stop"
 
     t0 = time.perf_counter()
     run(d.fit_data, d.geo_fit, n_iter=int(max_sweeps), callback=judge, progress=progress,
@@ -122,6 +124,7 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
              f"ran to {last[0]} iteration(s) (the cap n_iter={max_sweeps} or the "
              "method's own convergence test) without the rule stopping it"),
          "history": [list(h) for h in stopper.history],
+         "heldout_psnr_views": per_view,
          "seconds": time.perf_counter() - t0}
     if d.discrepancy:
         c["residuals"] = residuals
@@ -129,10 +132,11 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
     return c
 
 
-def _choose(candidates: list, discrepancy: bool):
+def _choose(candidates: list, discrepancy: bool, one_se: bool = False):
     """(index of the chosen candidate, noise level or None). With ``discrepancy`` each
     candidate's sweep becomes its discrepancy sweep where its residual reaches the noise
-    level (re-judged whenever candidates are added: the level is a minimum over all)."""
+    level (re-judged whenever candidates are added: the level is a minimum over all).
+    With ``one_se`` the choice is the one-standard-error rule (``_one_se``)."""
     noise = None
     if discrepancy:
         noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
@@ -143,7 +147,27 @@ def _choose(candidates: list, discrepancy: bool):
             c["heldout_psnr"] = dict(map(tuple, c["history"]))[c["kept_sweep"]]
     order = sorted(range(len(candidates)), key=lambda i: _sort_key(candidates[i]["setting"]))
     best = max(order, key=lambda i: (candidates[i]["heldout_psnr"], -order.index(i)))
-    return best, noise
+    return (_one_se(candidates, order, best) if one_se else best), noise
+
+
+def _one_se(candidates: list, order: list, best: int) -> int:
+    """The one-standard-error rule of cross-validation (Hastie, Tibshirani & Friedman,
+    ESL 7.10): of the candidates whose held-out PSNR lies within one standard error of the
+    best's, the one with the largest weight. Why: held-out views predict projections, and
+    weaker regularisation keeps improving that prediction a little while the 3-D error
+    grows in directions no projection sees; the standard error (the spread of the best
+    state's per-view PSNRs over sqrt(views)) says which differences the held-out views can
+    tell apart at all."""
+    c = candidates[best]
+    views = dict((s, v) for s, v in map(tuple, c["heldout_psnr_views"]))[c["kept_sweep"]]
+    v = np.asarray([x for x in views if np.isfinite(x)], np.float64)
+    se = float(np.std(v, ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0
+    level = c["heldout_psnr"] - se
+    within = [i for i in order if candidates[i]["heldout_psnr"] >= level]
+    for i, cand in enumerate(candidates):
+        cand["within_one_se"] = i in within
+    c["one_se"] = {"standard_error_db": se, "level_db": level}
+    return within[-1]
 
 
 def _sort_key(setting: dict):
@@ -161,7 +185,7 @@ def _decide(d: _Decision, run, grid, rule, max_sweeps, name, progress):
         for setting in pending:
             candidates.append(_decision_run(d, run, setting, rule, max_sweeps, name,
                                             progress))
-        chosen, noise = _choose(candidates, d.discrepancy)
+        chosen, noise = _choose(candidates, d.discrepancy, bool(search and search.one_se))
         winner = candidates[chosen]["setting"].get(search.name) if search else None
         nxt = search.next_value(winner) if search else None
         pending = [] if nxt is None else [{search.name: nxt}]
@@ -277,7 +301,9 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
         "candidates": candidates,
         "chosen": {"setting": pick["setting"], "sweeps": k,
                    "heldout_psnr": pick["heldout_psnr"]},
-        "why": _why(pick, held.tolist(), len(candidates), noise, k, n),
+        "why": (("the largest weight within one standard error of the " if search and
+                 search["rule"] == "one standard error" else "") +
+                _why(pick, held.tolist(), len(candidates), noise, k, n)),
         "decision_seconds": decision_seconds, "final_seconds": final_seconds,
         "oracle_seconds": total_final - final_seconds,
     }

@@ -20,6 +20,8 @@ class LogGrid:
     name: str
     values: list
     max_extend: int = 4
+    one_se: bool = False       # choose by the one-standard-error rule (larger weight wins
+                               # within one standard error of the best held-out PSNR)
     added: dict = field(default_factory=lambda: {"below": 0, "above": 0})
 
     def __post_init__(self):
@@ -57,4 +59,5 @@ class LogGrid:
         interior = self.values[0] < winner < self.values[-1]
         return {"weight": self.name, "values_tried": list(self.values), "chosen": winner,
                 "interior": interior, "added_below": self.added["below"],
-                "added_above": self.added["above"], "max_extend": int(self.max_extend)}
+                "added_above": self.added["above"], "max_extend": int(self.max_extend),
+                "rule": "one standard error" if self.one_se else "best held-out PSNR"}

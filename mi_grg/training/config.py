@@ -47,10 +47,9 @@ ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget"
 INIT_VOLUMES = ("fdk", "pdhg")
 
 #: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
-#: projector, the logged 3-D PSNR and the output volume use it. 3.5 instead of the
-#: projector's 4.5 costs 0.82x the training time for -0.03 dB over shepp, needles and
-#: shells at 64^3 (gr; docs/benchmarks.md, "Training step"): its truncation error (~3e-4
-#: in line-integral units) is 7 % of the noise of 25 views at I0 1e4.
+#: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
+#: projector's 4.5: its truncation error is a small fraction of the noise of sparse noisy
+#: views, and it saves training time (docs/benchmarks.md, "Training step").
 TRAIN_EXTENT = 3.5
 
 #: Iterations at 64^3 (``trainer.iteration_rule``): about what the 5-minute target buys on
@@ -81,8 +80,8 @@ ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
 #: ``stale_keys`` compares the count a run's recorded rule gave with today's, so that a
 #: rule change marks only the sizes whose count it changed.
 ITERATION_RULES = {
-    "1500*n/64": _rule_1500,                    # before 61ad6dd (not recorded then)
-    "3000*sqrt(n/64)": _rule_sqrt,              # 61ad6dd .. ac2cfbe
+    "1500*n/64": _rule_1500,                    # the first rule (runs did not record it)
+    "3000*sqrt(n/64)": _rule_sqrt,              # the second
     ITERATION_RULE: _rule_linear_to_2x,
 }
 
@@ -103,7 +102,7 @@ class TrainConfig:
                                    # adds sum in thread order, so volumes of two runs differ
                                    # slightly (docs/benchmarks.md)
     extent: float | None = None    # Gaussian support in std devs; None: TRAIN_EXTENT
-                                   # (3.5; 4.5 before 2026-11-27, the projector's default)
+                                   # (shorter than the projector's default 4.5)
     # --- De-Init (Sec. 3.3.1)
     init: str = "fdk"              # the volume De-Init samples: "fdk" (the paper's FDK of
                                    # the fitted views) or "pdhg" (PDHG's TV reconstruction
@@ -357,11 +356,11 @@ def stale_keys(m: dict) -> list:
     changed since it ran; a field in ``ADDED_LATER`` that the record lacks counts as its old
     value); [] if none differ or the run is not a training run. An iterative classical run
     (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]; a
-    run whose held-out views are not today's ``holdout_split`` (0, 8, 16, ... before f3bf235)
+    run whose held-out views are not today's ``holdout_split`` (the first split held out 0, 8, 16, ...)
     adds "held_out_views", and such a classical run decided under another ``stop_noise``
     adds "stop_noise" (its stop margin; gr / r2: ``_margin_inert``). A gr / r2 run that
     left ``extent`` or ``iterations`` automatic and resolved them otherwise than this code
-    (``TRAIN_EXTENT``, ``ITERATION_RULE``; runs before 61ad6dd record neither) adds
+    (``TRAIN_EXTENT``, ``ITERATION_RULE``; the earliest runs record neither) adds
     "extent" / "iterations"."""
     if (m.get("method") in ("sart", "asd-pocs", "pdhg")
             and (m.get("options") or {}).get("stop", "heldout") == "heldout"
@@ -391,8 +390,8 @@ def stale_keys(m: dict) -> list:
     return sorted(differ | _auto_changed(m, used)) + split
 
 
-#: What the automatic extent and iteration count resolved to before 2026-11-27 (runs
-#: made then do not record it): the projector's 4.5 and 1500 x n / 64 (sqrt below 64).
+#: What the automatic extent and iteration count resolved to in the earliest runs (which
+#: do not record it): the projector's 4.5 and 1500 x n / 64 (sqrt below 64).
 _OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
 
 
