@@ -181,3 +181,32 @@ def test_bad_inputs(small_cone_geometry):
         asd_pocs(ok, geo, n_iter=0)
     with pytest.raises(ValueError, match=r"init.*\[x, y, z\]"):
         sart(ok, geo, init=np.zeros((3, 3, 3)))
+
+
+def test_tol_stops_at_the_first_sweep_whose_residual_change_is_within_tol(rng, monkeypatch):
+    """tol stops after the first sweep whose residual differs from the previous sweep's by
+    at most tol x the previous one. The reference: the residuals of a run without tol (the
+    sweeps are deterministic), with tol set between the relative changes of two middle
+    sweeps, so that stopping too early or too late (or never) shows."""
+    import mi_grg.classical.iterative as iterative
+    geo, x_true, b = small_problem(rng)
+    residuals, sweep = [], iterative._SART.sweep
+
+    def recording(self, *a, **k):
+        x, res = sweep(self, *a, **k)
+        residuals.append(res)
+        return x, res
+    monkeypatch.setattr(iterative._SART, "sweep", recording)
+    n = 10
+    sart(b, geo, n_iter=n, progress=False)
+    r = np.asarray(residuals, np.float64)
+    change = np.abs(np.diff(r)) / r[:-1]        # change[i]: sweep i + 1 against sweep i
+    assert np.all(np.diff(change) < 0)          # shrinking, so one tol picks one sweep
+    want = 5                                    # stop after sweep index 5 (the 6th)
+    tol = float(np.sqrt(change[want - 1] * change[want - 2]))
+    seen = []
+    vol = sart(b, geo, n_iter=n, tol=tol, progress=False,
+               callback=lambda it, v: seen.append(it))
+    assert seen == list(range(want + 1))
+    ref = sart(b, geo, n_iter=want + 1, progress=False)   # float atomics: not bit for bit
+    np.testing.assert_allclose(vol, ref, atol=1e-3 * np.abs(ref).max())
