@@ -3,9 +3,10 @@
 ``reconstruct(case, method, out_dir)`` runs a method on a ``Case`` and writes
     OUT/vol_pred.npy   float32 [x, y, z], same shape, axis order and units as vol_gt.npy
     OUT/vol_pred.tif   the same as an ImageJ TIFF stack with its voxel size (``formats``)
-    OUT/metrics.json   method, options, wall-clock seconds, psnr_3d / ssim_3d (with a
-                       ground truth), the scanner geometry, what the data set simulated,
-                       what load_case clamped, variant and machine
+    OUT/metrics.json   method, options, wall-clock seconds (a resumed run's whole: the
+                       earlier calls' method_info["resumed_seconds"] included), psnr_3d /
+                       ssim_3d (with a ground truth), the scanner geometry, what the data
+                       set simulated, what load_case clamped, variant and machine
     OUT/slices.png     central orthogonal slices: prediction, ground truth, |error|
 A method is a function ``(case, **options) -> np.ndarray [x, y, z]`` or
 ``-> (np.ndarray, info dict)``; unknown options raise. A method that takes an ``out_dir``
@@ -155,6 +156,8 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, forma
     # An oracle's sweeps and scoring (ground truth; they decide nothing) are not the
     # method's time: method_info["oracle_seconds"] (mi_grg.protocol.heldout).
     seconds -= float((info or {}).get("oracle_seconds") or 0.0)
+    # A resumed run (gr / r2 with resume) reports the whole run: the calls before too.
+    seconds += float((info or {}).get("resumed_seconds") or 0.0)
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
                "geometry": geometry_info(case),

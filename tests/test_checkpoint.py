@@ -148,3 +148,122 @@ def test_checkpoint_of_another_config_or_no_checkpoint_is_a_clear_error(tiny_cas
     with pytest.raises(ValueError, match="cannot read checkpoint"):
         Trainer(tiny_case, make_config("gr", **OLD_OPTIONS), out_dir=tmp_path,
                 progress=False, resume=True)
+
+
+# The bit-for-bit resume checks: a run long enough to densify after the interruption and
+# to end on every view (the returned state is the last one).
+EXACT = dict(iterations=70, seed=2, n_points=200, max_gaussians=800, eval_every=100,
+             holdout_every=3)
+
+
+def _one_thread_run(trainer):
+    n = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        return trainer.run()
+    finally:
+        dr.set_thread_count(n)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_case, tmp_path_factory):
+    """The reference: EXACT run to its end without a stop, on one thread."""
+    out = tmp_path_factory.mktemp("uninterrupted")
+    t = Trainer(tiny_case, make_config("gr", **EXACT), out_dir=out, progress=False)
+    _one_thread_run(t)
+    return t, out
+
+
+def _assert_same_state(a, b):
+    """Every raw parameter, Adam's moments and step counts, the densifier's statistics and
+    the generator: equal bit for bit."""
+    assert a.state.iteration == b.state.iteration
+    for k in a.state.raw:
+        np.testing.assert_array_equal(np.asarray(b.state.raw[k]), np.asarray(a.state.raw[k]),
+                                      err_msg=k)
+    oa, ob = a.optimizer.state_dict(), b.optimizer.state_dict()
+    assert sorted(oa) == sorted(ob)
+    for name in oa:
+        assert oa[name]["step"] == ob[name]["step"], name
+        np.testing.assert_array_equal(ob[name]["m"], oa[name]["m"], err_msg=name)
+        np.testing.assert_array_equal(ob[name]["v"], oa[name]["v"], err_msg=name)
+    da, db = a.densifier.state_dict(), b.densifier.state_dict()
+    for k in da:
+        np.testing.assert_array_equal(db[k], da[k], err_msg=k)
+    assert a.rng.bit_generator.state == b.rng.bit_generator.state
+
+
+def test_resumed_run_equals_the_uninterrupted_one_bit_for_bit(tiny_case, tmp_path, crash_after,
+                                                              uninterrupted, one_thread):
+    """Crashed in iteration 48 (mid-step, so the checkpoint of 40 is what survives) and
+    resumed to the end: every parameter, Adam's moments and the densifier's statistics
+    equal the uninterrupted run's exactly (one thread: float atomics in one order)."""
+    full, _ = uninterrupted
+    cfg = make_config("gr", **EXACT, checkpoint_every=20)
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False), 47)
+    # the interval is bookkeeping: resuming with another one continues the same run
+    resumed = Trainer(tiny_case, make_config("gr", **EXACT, checkpoint_every=9),
+                      out_dir=tmp_path, progress=False, resume=True)
+    assert resumed.state.iteration == 40
+    resumed.run()
+    assert resumed.state.iteration == 70
+    _assert_same_state(full, resumed)
+
+
+def test_ctrl_c_finishes_the_iteration_and_leaves_a_checkpoint_that_resumes(
+        tiny_case, tmp_path, uninterrupted, one_thread):
+    """SIGINT during iteration 45 (the automatic interval of this 70-iteration run is 7, so
+    the last periodic checkpoint is 42): the iteration finishes, a checkpoint of 45 is
+    written, KeyboardInterrupt follows and the handler before the run is back. Resumed
+    through ``reconstruct``, the run ends as the uninterrupted one, bit for bit, and
+    metrics.json's seconds add the interrupted call's wall clock."""
+    import json
+    import os
+    import signal
+    from mi_grg.methods import reconstruct
+    from mi_grg.training.checkpoint import CHECKPOINT_NAME
+    full, full_out = uninterrupted
+    cfg = make_config("gr", **EXACT)
+    cut = Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False)
+    step = cut._step
+
+    def interrupted_step(it, raw):
+        if it == 45:
+            os.kill(os.getpid(), signal.SIGINT)
+        return step(it, raw)
+    cut._step = interrupted_step
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        cut.run()
+    assert signal.getsignal(signal.SIGINT) is before
+    with np.load(tmp_path / CHECKPOINT_NAME) as f:
+        arrays = dict(f)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    assert meta["iteration"] == 45 and len(meta["log"]) == 45
+    assert meta["wall_seconds"] >= meta["seconds"] > 0
+    # an earlier call that took 1000 s: the resumed run's seconds must include it
+    meta["wall_seconds"] = 1000.0
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / CHECKPOINT_NAME, **arrays)
+
+    n = dr.thread_count()
+    _, metrics = reconstruct(tiny_case, "gr", out_dir=tmp_path, resume=True, progress=False,
+                             **EXACT)
+    assert dr.thread_count() == n
+    info = metrics["method_info"]
+    assert info["init"] == {"resumed_from": 45} and info["iterations_run"] == 70
+    assert info["resumed_seconds"] == 1000.0 and 1000.0 < metrics["seconds"] < 1000.0 + 600
+    assert info["checkpoint_every"] == 7
+    with np.load(full_out / CHECKPOINT_NAME) as a, np.load(tmp_path / CHECKPOINT_NAME) as b:
+        keys = [k for k in a.files if k != "meta"]
+        assert sorted(keys) == sorted(k for k in b.files if k != "meta")
+        assert any(k.startswith("adam_m__") for k in keys)
+        for k in keys:
+            np.testing.assert_array_equal(b[k], a[k], err_msg=k)
+
+
+def test_checkpoint_interval_scales_with_the_run():
+    from mi_grg.training.trainer import checkpoint_interval
+    assert [checkpoint_interval(None, n) for n in (5, 60, 999, 4000, 6000, 30000)] == \
+        [1, 6, 99, 400, 500, 500]
+    assert checkpoint_interval(25, 60) == 25 and checkpoint_interval(1000, 60) == 1000

@@ -548,3 +548,18 @@ def test_table2_rows_each_add_one_component_to_r2(tmp_path):
     base = runs["r2"].options
     for run, method, options, _ in rows[1:-1]:
         assert runs[run].method == method and runs[run].options == {**base, **options}, run
+
+
+def test_the_checkpoint_interval_never_makes_a_run_stale():
+    """checkpoint_every decides only when checkpoints are written: a run recorded with
+    another interval (500, the fixed default before it became automatic) is not stale,
+    while another value of a field that changes the result is."""
+    from mi_grg.training.config import make_config, stale_keys
+
+    def run(**recorded):
+        info = {"config": {**make_config("gr").to_dict(), **recorded}, "extent": 3.5,
+                "iteration_rule": "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"}
+        return {"method": "gr", "options": {}, "nVoxel": [64, 64, 64], "method_info": info}
+    assert stale_keys(run()) == []
+    assert stale_keys(run(checkpoint_every=500)) == []
+    assert stale_keys(run(checkpoint_every=500, k=5)) == ["k"]

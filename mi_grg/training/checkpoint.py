@@ -11,7 +11,7 @@ File layout (one ``.npz``; the same as before this module existed, so older file
 load): ``raw__<key>`` / ``kept__<key>`` parameter arrays, ``kept_density_scale``,
 ``graph_positions`` [N, 3], ``adam_m__<group>`` / ``adam_v__<group>`` [N, C],
 ``dens_grad`` / ``dens_count`` [N] and ``meta`` (JSON: iteration, rng, log, stopper,
-stopped_by, seconds, config, adam_steps, time_plan).
+stopped_by, seconds, wall_seconds, config, adam_steps, time_plan).
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import ADDED_LATER, TrainConfig, upgrade_config_dict
+from mi_grg.training.config import ADDED_LATER, BOOKKEEPING, TrainConfig, upgrade_config_dict
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -41,7 +41,9 @@ class TrainState:
     kept_density_scale: object = None
     graph_positions: object = None   # positions [N, 3] the current graph was built from
     stopped_by: str | None = None
-    seconds: float = 0.0
+    seconds: float = 0.0             # training time (the loop's, cumulative over resumes)
+    wall_seconds: float = 0.0        # wall clock from the run's start (De-Init included) to
+                                     # this state, over every call that resumed it
     time_plan: dict | None = None    # the plan of a time_budget run (mi_grg.training.budget)
 
 
@@ -99,7 +101,8 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
     stop = stopper.state_dict() if stopper.history or stopper.seen else None
     meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
             "stopper": stop, "stopped_by": state.stopped_by,
-            "seconds": state.seconds, "config": cfg.to_dict(), "time_plan": state.time_plan,
+            "seconds": state.seconds, "wall_seconds": state.wall_seconds,
+            "config": cfg.to_dict(), "time_plan": state.time_plan,
             "adam_steps": {n: st["step"] for n, st in opt.items()}}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     _atomic_savez(Path(path), **arrays)
@@ -109,15 +112,17 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     """Read a checkpoint written by ``save_checkpoint`` (of this or an earlier version):
     restores ``optimizer``, ``densifier`` and ``stopper`` through load_state_dict() and
     returns the ``TrainState``. A checkpoint of another config is an error that names the
-    differing fields (resuming must continue the same run)."""
+    differing fields (resuming must continue the same run); ``BOOKKEEPING`` fields may
+    differ."""
     with _open(path) as f:
         meta = _meta(f, path)
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
         # lack fields added since (their value then: ADDED_LATER).
         used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
         want = cfg.to_dict()
-        if used != want:
-            changed = sorted(k for k in set(used) | set(want) if used.get(k) != want.get(k))
+        changed = sorted(k for k in set(used) | set(want)
+                         if used.get(k) != want.get(k) and k not in BOOKKEEPING)
+        if changed:
             raise ValueError(f"checkpoint {path} was made with a different config "
                              f"(differs in {changed}); resume with the same options")
         raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
@@ -140,6 +145,8 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],
                       kept_raw=kept, kept_density_scale=kept_ds,
                       stopped_by=meta["stopped_by"], seconds=meta["seconds"],
+                      # older files: the training time, the part of the wall clock they kept
+                      wall_seconds=meta.get("wall_seconds", meta["seconds"]),
                       graph_positions=graph_pos, time_plan=meta.get("time_plan"))
 
 

@@ -27,7 +27,12 @@ from mi_grg.protocol.early_stop import KEEP_STATES, STOP_RULE
 
 #: Fields whose None means "automatic" (each field's comment says what is chosen). Records
 #: written before they were optional spell that 0 (``upgrade_config_dict``).
-AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every")
+AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
+               "checkpoint_every")
+
+#: Fields that cannot change a run's result (when its checkpoints are written): a resume
+#: may change them, and a finished run is not stale for them (``stale_keys``).
+BOOKKEEPING = ("checkpoint_every",)
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
@@ -182,7 +187,9 @@ class TrainConfig:
                                    # (no effect on training); None: at each held-out
                                    # evaluation
     # --- bookkeeping
-    checkpoint_every: int = 500
+    checkpoint_every: int | None = None  # iterations between checkpoints; None: a tenth
+                                   # of the run, 1 to 500 (trainer.checkpoint_interval), so
+                                   # that a short run has them too
     time_budget: float | None = None  # seconds for the whole training (De-Init to the
                                    # returned state): the iteration count and schedule are
                                    # planned from a probe of this machine's speed instead of
@@ -225,7 +232,7 @@ class TrainConfig:
         if self.keep_state not in KEEP_STATES:
             raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                               f"got {self.keep_state!r}")
-        zero = [n for n in ("checkpoint_every", "eval_every", "densify_interval", "tv_every",
+        zero = [n for n in ("eval_every", "densify_interval", "tv_every",
                             "stop_patience") if getattr(self, n) < 1]
         if zero:
             raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
@@ -382,7 +389,8 @@ def stale_keys(m: dict) -> list:
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
     used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
-    differ = {k for k in set(now) | set(used) if now.get(k) != used.get(k)}
+    differ = {k for k in set(now) | set(used)
+              if now.get(k) != used.get(k) and k not in BOOKKEEPING}
     if now.get("holdout_every") == 0 and used.get("holdout_every") == 0:
         differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
     if "stop_noise" in differ and _margin_inert(m, used, now):

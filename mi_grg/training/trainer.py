@@ -14,8 +14,9 @@ wall-clock ``time_budget`` (``mi_grg.training.budget``); the schedule scales wit
 
 Every component is switched by ``TrainConfig`` (``mi_grg.training.config``), so one loop runs
 R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
-Runs write checkpoints that ``resume=True`` continues from: an interrupted run loses at
-most ``checkpoint_every`` iterations.
+Runs write checkpoints that ``resume=True`` continues from: a crashed run loses at most
+``checkpoint_interval`` iterations, an interrupted one (Ctrl-C) none: the iteration in
+progress finishes and a checkpoint is written before the KeyboardInterrupt.
 
 Units: the loop works in the case's units (R2-Gaussian's normalised scene, volume in
 [-1, 1]^3, when the case was loaded with rescaling); densities are never rescaled.
@@ -24,6 +25,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -94,8 +98,49 @@ def gaussian_cap(cfg: TrainConfig, geometry) -> int:
     return cap
 
 
+def checkpoint_interval(checkpoint_every: int | None, iterations: int) -> int:
+    """Iterations between checkpoints: ``checkpoint_every``, or when None a tenth of the
+    run, at least 1 and at most 500, so that a short run is checkpointed too."""
+    if checkpoint_every is not None:
+        return int(checkpoint_every)
+    return min(500, max(1, int(iterations) // 10))
+
+
+class _DeferredInterrupt:
+    """Ctrl-C (SIGINT) inside the training loop, noted and acted on once the iteration in
+    progress is done: inside one the optimiser, the densifier and the generator advance at
+    different moments, so only between iterations is there one state to checkpoint. A
+    second Ctrl-C interrupts at once. Does nothing outside the main thread (no signal
+    handler there) or where SIGINT is ignored."""
+
+    def __init__(self):
+        self.requested, self._installed, self._old = False, False, None
+
+    def __enter__(self):
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
+            self._old = signal.signal(signal.SIGINT, self._note)
+            self._installed = True
+        return self
+
+    def _note(self, signum, frame):
+        self.requested = True
+        signal.signal(signal.SIGINT, self._previous())
+        print("\ninterrupted: finishing this iteration and writing a checkpoint "
+              "(Ctrl-C again to stop at once)", file=sys.stderr)
+
+    def _previous(self):
+        # None: a handler installed from C, which Python cannot reinstate
+        return signal.default_int_handler if self._old is None else self._old
+
+    def __exit__(self, *exc):
+        if self._installed:
+            signal.signal(signal.SIGINT, self._previous())
+        return False
+
+
 def _scaled(cfg: TrainConfig, iterations: int) -> dict:
-    """Densification window and eval/checkpoint intervals, scaled from the paper's 30k."""
+    """Densification window and eval intervals, scaled from the paper's 30k."""
     f = iterations / 30000.0
     return {"densify_start": max(1, int(cfg.densify_start * f)),
             "densify_stop": max(2, int(cfg.densify_stop * f)),
@@ -192,6 +237,9 @@ class Trainer:
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
+        # Wall clock of the calls this run resumed from (metrics.json's seconds add it).
+        self.resumed_seconds = self.state.wall_seconds if resuming else 0.0
+        self._wall_start = t_begin - self.resumed_seconds
         self.planner = None
         if cfg.time_budget is not None:
             self.planner = self._budget_planner()
@@ -404,34 +452,40 @@ class Trainer:
         last_psnr = None
         # The stop rule's verdict (restored on resume) decides the view sets and the end.
         self._stop = stop_from(self.stopper.state_dict())
-        while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
-            it = st.iteration + 1
-            raw, loss_value = self._step(it, raw)
-            densified = self.densifier.is_densify_iteration(it)
-            if densified:
-                raw = self._densify_and_rebuild(it, raw)
-            st.iteration, st.raw = it, raw
-            row = {"iteration": it, "seconds": round(time.perf_counter() - self._t_start, 3),
-                   "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-            if (self.planner is not None
-                    and self.planner.wants_replan(it, densified, self.sched["densify_stop"])):
-                self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
-                bar.total = self.iterations
-            raw = self._evaluate(it, raw, row)
-            last_psnr = row.get("heldout_psnr", last_psnr)
-            st.log.append(row)
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss_value:.4f}", N=row["n_gaussians"],
-                            heldout=f"{last_psnr:.2f}" if last_psnr is not None else "-",
-                            refresh=False)
-            st.seconds = time.perf_counter() - self._t_start
-            st.rng = self.rng.bit_generator.state
-            if (self.planner is not None and st.stopped_by is None
-                    and self.planner.out_of_time(st.seconds)):
-                st.stopped_by = (f"time budget ({self.cfg.time_budget:g} s) reached at "
-                                 f"iteration {it} of {self.iterations} planned")
-            if it % self.cfg.checkpoint_every == 0 or st.stopped_by is not None:
-                self._save_checkpoint()
+        with _DeferredInterrupt() as interrupt:
+            while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
+                it = st.iteration + 1
+                raw, loss_value = self._step(it, raw)
+                densified = self.densifier.is_densify_iteration(it)
+                if densified:
+                    raw = self._densify_and_rebuild(it, raw)
+                st.iteration, st.raw = it, raw
+                row = {"iteration": it,
+                       "seconds": round(time.perf_counter() - self._t_start, 3),
+                       "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
+                if (self.planner is not None and self.planner.wants_replan(
+                        it, densified, self.sched["densify_stop"])):
+                    self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
+                    bar.total = self.iterations
+                raw = self._evaluate(it, raw, row)
+                last_psnr = row.get("heldout_psnr", last_psnr)
+                st.log.append(row)
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss_value:.4f}", N=row["n_gaussians"],
+                                heldout=f"{last_psnr:.2f}" if last_psnr is not None else "-",
+                                refresh=False)
+                st.seconds = time.perf_counter() - self._t_start
+                st.rng = self.rng.bit_generator.state
+                if (self.planner is not None and st.stopped_by is None
+                        and self.planner.out_of_time(st.seconds)):
+                    st.stopped_by = (f"time budget ({self.cfg.time_budget:g} s) reached at "
+                                     f"iteration {it} of {self.iterations} planned")
+                every = checkpoint_interval(self.cfg.checkpoint_every, self.iterations)
+                if it % every == 0 or st.stopped_by is not None or interrupt.requested:
+                    self._save_checkpoint()
+                if interrupt.requested:
+                    bar.close()
+                    raise KeyboardInterrupt
         bar.close()
         return self._finish()
 
@@ -543,6 +597,7 @@ class Trainer:
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint_path is not None:
+            self.state.wall_seconds = time.perf_counter() - self._wall_start
             save_checkpoint(self.checkpoint_path, self.state, self.optimizer, self.densifier,
                             self.stopper, self.cfg)
 
@@ -579,6 +634,11 @@ class Trainer:
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds, "schedule": self.sched,
+                   "checkpoint_every": checkpoint_interval(cfg.checkpoint_every,
+                                                           self.iterations),
+                   # wall clock of the earlier calls of a resumed run, to its checkpoint
+                   # (0: not resumed); metrics.json's seconds include it
+                   "resumed_seconds": self.resumed_seconds,
                    "max_gaussians": self.densifier.config.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
                    "views": self.views.record(st.iteration, stop, self.stopper.history,
