@@ -187,15 +187,10 @@ class _ProjectOp(dr.CustomOp):
         v0 = 0 if mode == dr.ADMode.Backward else prep.v0
         one_view = prep.reg_gi is None          # the records are one view's Gaussians
         vbase = view_base(prep.reg_vi, det, v0, view=prep.v0 if one_view else None)
-        if mode == dr.ADMode.Backward:
-            sums = RecordSums(prep.params, prep.n_reg)
-        for rec, row in prep.row_batches(ROWS_PER_BATCH):
-            r = regular_kernel(mode, det, arrays, vbase, rec, row, image, gimage, tan)
-            if mode == dr.ADMode.Backward:
-                sums.add(r, rec)
-            else:
-                dr.eval(image)
-        return sums.result() if mode == dr.ADMode.Backward else None
+        return _sweep_rows(
+            mode, prep.row_batches(ROWS_PER_BATCH), image, prep.params, prep.n_reg,
+            lambda rec, row: regular_kernel(mode, det, arrays, vbase, rec, row, image,
+                                            gimage, tan))
 
     def _run_near(self, prep, gauss, means2d, mode, image, gimage, tangent_src):
         """The near-source records' kernels over every detector row; per-record gradient
@@ -208,15 +203,10 @@ class _ProjectOp(dr.CustomOp):
         vbase = view_base(prep.near_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
         n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
         row_lo = dr.zeros(mi.Int32, prep.n_near)
-        if mode == dr.ADMode.Backward:
-            sums = RecordSums(params, prep.n_near)
-        for rec, row in expand_rows(n_rows, row_lo, ROWS_PER_BATCH):
-            r = near_kernel(mode, det, params, vbase, rec, row, image, gimage, tan)
-            if mode == dr.ADMode.Backward:
-                sums.add(r, rec)
-            else:
-                dr.eval(image)
-        return sums.result() if mode == dr.ADMode.Backward else None
+        return _sweep_rows(
+            mode, expand_rows(n_rows, row_lo, ROWS_PER_BATCH), image, params, prep.n_near,
+            lambda rec, row: near_kernel(mode, det, params, vbase, rec, row, image, gimage,
+                                         tan))
 
     def _leaves(self):
         """Fresh differentiable copies of the inputs (for AD inside backward/forward)."""
@@ -354,3 +344,17 @@ def project(gaussians: Gaussians, geometry: Geometry, angles=None, extent: float
     with dr.suspend_grad():
         img = project_dr(gaussians, geometry, angles, extent, density_scale)
     return np.asarray(img.numpy(), np.float32).reshape(img.shape)
+
+
+def _sweep_rows(mode, batches, image, params, n_records: int, kernel):
+    """Run ``kernel(rec, row)`` over the (record, row) batches: backward adds each batch's
+    per-record gradient sums and returns them; otherwise the image is evaluated per batch
+    (so a batch's lanes never pile up in one trace) and None is returned."""
+    sums = RecordSums(params, n_records) if mode == dr.ADMode.Backward else None
+    for rec, row in batches:
+        r = kernel(rec, row)
+        if sums is not None:
+            sums.add(r, rec)
+        else:
+            dr.eval(image)
+    return None if sums is None else sums.result()

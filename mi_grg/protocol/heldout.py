@@ -39,6 +39,7 @@ its time (``oracle_seconds``) is left out of metrics.json's "seconds"
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -60,9 +61,7 @@ ORACLE_LABEL = "oracle: best sweep chosen with the ground truth; decides nothing
 
 def stop_rule() -> dict:
     """The rule's settings as metrics.json records them."""
-    r = STOP_RULE
-    return {"holdout_every": r.holdout_every, "drop": r.drop, "patience": r.patience,
-            "noise": r.noise, "keep": r.keep}
+    return dataclasses.asdict(STOP_RULE)
 
 
 def check_stop(stop: str) -> str:
