@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import shutil
 import sys
 import time
 import zipfile
@@ -171,11 +172,13 @@ def _check_option_values(method: str, options: dict, raw: dict) -> None:
         raise ValueError(f"--option {key}={raw[key]}: expected {kind} (default {default!r})")
 
 
-def _run_method(args, formats, options, raw) -> tuple:
-    """reconstruct(); a type error with options given as text names those options."""
+def _run_method(args, out_dir, formats, options, raw) -> tuple:
+    """reconstruct() into ``out_dir``, a temporary that becomes --out; a type error with
+    options given as text names those options."""
     from mi_grg.methods import reconstruct
     try:
-        return reconstruct(args.data, args.method, args.out, formats=formats, **options)
+        return reconstruct(args.data, args.method, out_dir, formats=formats,
+                           staged_for=args.out, **options)
     except (TypeError, ValueError) as e:
         texts = {k: raw[k] for k, v in options.items() if isinstance(v, str) and k in raw}
         if not texts or any(k in str(e) for k in texts):
@@ -185,6 +188,51 @@ def _run_method(args, formats, options, raw) -> tuple:
         raise ValueError(f"--option {', '.join(texts)}: passed as text, which the method "
                          f"could not use ({type(e).__name__}: {e}); expected a number, "
                          "true/false or JSON") from e
+
+
+#: Files that make a folder an earlier run (finished, or with the checkpoint of one that
+#: stopped), which a new run into it replaces whole.
+_RUN_FILES = ("metrics.json", "checkpoint.npz")
+
+
+def _prepare_out(args, options) -> Path | None:
+    """Repair what a killed run left beside --out, refuse an --out that is no earlier run,
+    and with --resume set options["resume"] to the checkpoint to continue: an interrupted
+    or killed run's, in its temporary beside --out (returned), else --out's own."""
+    from mi_grg.data.outputs import check_replaceable, clean_stale, resumable
+    out = Path(args.out)
+    source = resumable(out, "reconstruct", _RUN_FILES[1]) if args.resume else None
+    for note in clean_stale(out, "reconstruct", keep=[source.parent] if source else []):
+        print(f"note: {note}", file=sys.stderr)
+    check_replaceable(out, overwrite=True, markers=_RUN_FILES, what="an earlier run")
+    if args.resume:
+        if source is not None:
+            print(f"note: resuming from {source}, left by a run that stopped", file=sys.stderr)
+        options["resume"] = str(source if source is not None else out / _RUN_FILES[1])
+    return source
+
+
+def _staged_run(args, formats, options) -> dict:
+    """The run, written into a temporary beside --out that replaces --out only once it is
+    complete (an earlier output stays as it was until then); an interrupted run's
+    temporary is kept for --resume. The checkpoint a run resumed from is removed once a
+    newer one exists."""
+    from mi_grg.data.outputs import partial_dir, replaced_dir
+    source = _prepare_out(args, options)
+    consumed = source.parent if source is not None else None
+    try:
+        with replaced_dir(args.out, "reconstruct", keep=[consumed] if consumed else [],
+                          partial=_RUN_FILES[1]) as tmp:
+            _, metrics = _run_method(args, tmp, formats, options, _raw_options(args.option))
+    except KeyboardInterrupt:
+        newer = partial_dir(args.out) / _RUN_FILES[1]
+        if (consumed is not None and consumed != newer.parent and newer.is_file()
+                and newer.stat().st_mtime_ns > source.stat().st_mtime_ns):
+            shutil.rmtree(consumed, ignore_errors=True)
+        raise
+    if consumed is not None:
+        shutil.rmtree(consumed, ignore_errors=True)
+    return metrics
 
 
 def cmd_reconstruct(args) -> int:
@@ -197,9 +245,7 @@ def cmd_reconstruct(args) -> int:
     _check_option_values(args.method, options, _raw_options(args.option))
     if args.config:
         options["config"] = args.config
-    if args.resume:
-        options["resume"] = True
-    vol, metrics = _run_method(args, formats, options, _raw_options(args.option))
+    metrics = _staged_run(args, formats, options)
     summary = f"{args.method}: {metrics['seconds']:.1f} s"
     if "psnr_3d" in metrics:
         summary += f", PSNR {metrics['psnr_3d']:.2f} dB, SSIM {metrics['ssim_3d']:.3f}"
@@ -421,7 +467,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--option", action="append", metavar="KEY=VALUE",
                    help="method option, repeatable (e.g. --option n_iter=20)")
     r.add_argument("--resume", action="store_true",
-                   help="r2 / gr: continue from OUT/checkpoint.npz (same options required)")
+                   help="r2 / gr: continue the run that stopped (Ctrl-C, a crash) or "
+                   "OUT/checkpoint.npz (same options required)")
     r.add_argument("--format", action="append", metavar="NAMES",
                    help="volume files: npy, tiff (ImageJ), nifti (.nii.gz); comma list or "
                    "repeated (default npy,tiff)")
@@ -474,6 +521,9 @@ def main(argv=None) -> int:
         message = e.code
     except (ValueError, OSError, EOFError, MemoryError, zipfile.BadZipFile) as e:
         message = _describe(e)
+    except KeyboardInterrupt:   # Ctrl-C: what was kept is said above; no traceback
+        print(f"mi-grg {args.command}: interrupted", file=sys.stderr)
+        return 130
     # Bad input (our errors name the field or file): one line, not a traceback.
     print(f"mi-grg {args.command}: error: {' '.join(message.split())}", file=sys.stderr)
     return 2

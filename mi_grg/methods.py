@@ -115,12 +115,13 @@ def score(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> dict:
 
 
 def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, formats=None,
-                **options):
+                staged_for=None, **options):
     """Run ``method`` on ``case`` (a Case or a data-set directory).
 
     Returns (volume [x, y, z] float32, metrics dict). Writes the contract's files when
     ``out_dir`` is given, the volume in ``formats`` (``mi_grg.data.export``; default npy
-    and tiff).
+    and tiff). ``staged_for``: the folder that ``out_dir`` (a temporary) becomes once the
+    run is done (``mi_grg.data.outputs.replaced_dir``), recorded as the run's out_dir.
     """
     from mi_grg.data.export import parse_formats
     formats = parse_formats(formats)   # a bad name fails before any work
@@ -158,6 +159,8 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, forma
     seconds -= float((info or {}).get("oracle_seconds") or 0.0)
     # A resumed run (gr / r2 with resume) reports the whole run: the calls before too.
     seconds += float((info or {}).get("resumed_seconds") or 0.0)
+    if staged_for is not None and "out_dir" in options:
+        options = {**options, "out_dir": str(staged_for)}
     metrics = {"method": method, "options": options, "seconds": seconds,
                "n_train_views": int(case.geometry.n_views), "nVoxel": list(expected),
                "geometry": geometry_info(case),

@@ -5,6 +5,10 @@
 it in at the end: a failure (or a kill) before the swap leaves the old output as it was; the
 swap is two renames, and ``clean_stale`` repairs a kill between them on the next run
 (the old output is put back, temporaries of dead processes are removed).
+
+A run that can be resumed (``partial``: the name of its checkpoint) keeps its temporary when
+interrupted (Ctrl-C) as ``.OUT.partial-PID``; ``resumable`` finds the checkpoint of such a
+run, or of one killed while writing into its temporary, for the next run to continue.
 """
 from __future__ import annotations
 
@@ -57,18 +61,20 @@ def check_writable(out, option: str = "--out") -> None:
         raise DatasetError(f"{option} {out}: {parent} is not writable")
 
 
-def check_replaceable(out, overwrite: bool, option: str = "--out") -> None:
+def check_replaceable(out, overwrite: bool, option: str = "--out",
+                      markers: tuple = (META_NAME,), what: str = "a data set") -> None:
     """DatasetError unless a non-empty ``out`` may be replaced: ``overwrite`` given, ``out``
-    a data set (it has meta_data.json: an unrelated folder is never deleted), and every
-    folder in it writable, so that the old output can be removed after the swap."""
+    an earlier output (it has one of the files ``markers``: an unrelated folder is never
+    deleted), and every folder in it writable, so that the old output can be removed after
+    the swap."""
     out = Path(out)
     if not (out.is_dir() and any(out.iterdir())):
         return
     if not overwrite:
         raise DatasetError(f"{option} {out}: exists and is not empty (use --overwrite)")
-    if not (out / META_NAME).is_file():
-        raise DatasetError(f"{option} {out}: not a data set (no {META_NAME}), and only an "
-                           "earlier output is ever replaced; give a new directory")
+    if not any((out / m).is_file() for m in markers):
+        raise DatasetError(f"{option} {out}: not {what} (no {' or '.join(markers)}), and only "
+                           "an earlier output is ever replaced; give a new directory")
     for folder in [out, *(p for p in out.rglob("*") if p.is_dir() and not p.is_symlink())]:
         if not os.access(folder, os.W_OK | os.X_OK):
             raise DatasetError(f"{option} {out}: {folder} is not writable, so the old "
@@ -89,7 +95,7 @@ def _alive(pid: int) -> bool:
 
 def _temporaries(out: Path, tag: str) -> list:
     """(kind, pid, path) of the hidden temporaries beside ``out``."""
-    pattern = re.compile(rf"\.{re.escape(out.name)}\.({re.escape(tag)}|old)-(\d+)")
+    pattern = re.compile(rf"\.{re.escape(out.name)}\.({re.escape(tag)}|old|partial)-(\d+)")
     found = []
     for p in out.parent.glob(f".{_glob.escape(out.name)}.*-*"):
         m = pattern.fullmatch(p.name)
@@ -98,14 +104,41 @@ def _temporaries(out: Path, tag: str) -> list:
     return found
 
 
-def clean_stale(out, tag: str) -> list:
+def _stale(out: Path, tag: str) -> list:
+    """The temporaries beside ``out`` that no running process writes: a dead one's, and an
+    interrupted run's of this process (it is finished)."""
+    return [t for t in _temporaries(out, tag)
+            if (t[1] != os.getpid() and not _alive(t[1]))
+            or (t[0] == "partial" and t[1] == os.getpid())]
+
+
+def partial_dir(out) -> Path:
+    """Where this process keeps an interrupted run's temporary (``replaced_dir``)."""
+    out = Path(out)
+    return out.parent / f".{out.name}.partial-{os.getpid()}"
+
+
+def resumable(out, tag: str, name: str):
+    """The newest file ``name`` (a checkpoint) in a temporary beside ``out`` that a killed
+    or interrupted run left, or None."""
+    out = Path(out)
+    if not out.parent.is_dir():
+        return None
+    found = [path / name for kind, _, path in _stale(out, tag)
+             if kind != "old" and (path / name).is_file()]
+    return max(found, key=lambda p: p.stat().st_mtime_ns, default=None)
+
+
+def clean_stale(out, tag: str, keep=()) -> list:
     """Repair what a killed run left beside ``out``: its old output is put back when the
-    swap did not finish, its temporaries are removed. Returns one note per repair."""
+    swap did not finish, its temporaries are removed (except those in ``keep``). Returns one
+    note per repair."""
     out = Path(out)
     notes = []
     if not out.parent.is_dir():
         return notes
-    stale = [t for t in _temporaries(out, tag) if t[1] != os.getpid() and not _alive(t[1])]
+    keep = {Path(k) for k in keep}
+    stale = [t for t in _stale(out, tag) if t[2] not in keep]
     for kind, pid, path in sorted(stale, key=lambda t: t[0] != "old"):
         if kind == "old" and not out.exists():
             os.rename(path, out)
@@ -118,7 +151,10 @@ def clean_stale(out, tag: str) -> list:
                 notes.append(f"{path} is left by a run (pid {pid}) and cannot be removed "
                              f"({e}); remove it by hand")
                 continue
-            notes.append(f"removed {path.name}, left by a killed run (pid {pid})")
+            notes.append(f"removed {path.name}, left by a killed run (pid {pid})"
+                         if kind != "partial" else
+                         f"removed {path.name}, the checkpoint of an interrupted run (pid "
+                         f"{pid}) that this run does not resume (--resume would)")
     return notes
 
 
@@ -142,13 +178,26 @@ def _swap(tmp: Path, out: Path) -> None:
               file=sys.stderr)
 
 
+def _keep_partial(tmp: Path, out: Path) -> None:
+    """Keep an interrupted run's temporary for --resume (an earlier one of this process is
+    superseded), and say where it is."""
+    kept = partial_dir(out)
+    if kept.exists():
+        shutil.rmtree(kept)
+    os.rename(tmp, kept)
+    print(f"note: {out} is unchanged; the interrupted run is kept in {kept} (the same "
+          "command with --resume continues it)", file=sys.stderr)
+
+
 @contextlib.contextmanager
-def replaced_dir(out, tag: str):
+def replaced_dir(out, tag: str, keep=(), partial: str | None = None):
     """Yield a fresh temporary directory beside ``out``; when the block succeeds it
     becomes ``out`` (replacing an old one), otherwise it is removed and ``out`` is left
-    as it was."""
+    as it was. Stale temporaries are cleaned first, except those in ``keep``; with
+    ``partial`` (a checkpoint's name), an interrupted block (KeyboardInterrupt) whose
+    temporary holds that file keeps it as ``partial_dir(out)``."""
     out = Path(out)
-    for note in clean_stale(out, tag):
+    for note in clean_stale(out, tag, keep):
         print(f"note: {note}", file=sys.stderr)
     tmp = out.parent / f".{out.name}.{tag}-{os.getpid()}"
     if tmp.exists():
@@ -156,6 +205,12 @@ def replaced_dir(out, tag: str):
     try:
         yield tmp
         _swap(tmp, out)
+    except KeyboardInterrupt:
+        if partial is not None and (tmp / partial).is_file():
+            _keep_partial(tmp, out)
+        else:
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import signal
 import sys
 import threading
@@ -184,7 +185,7 @@ class Trainer:
     """One training run on a case. Construct, then ``run()``; see the module docstring."""
 
     def __init__(self, case: Case, cfg: TrainConfig, out_dir=None, progress: bool = True,
-                 resume: bool = False):
+                 resume=False):
         t_begin = time.perf_counter()
         self.case, self.cfg, self.progress = case, cfg, progress
         self.out = Path(out_dir) if out_dir is not None else None
@@ -192,15 +193,18 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
         geo = case.geometry
         self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
-        resuming = (resume and self.checkpoint_path is not None
-                    and self.checkpoint_path.exists())
+        # resume: True continues from out_dir's checkpoint; a path from that file (a run
+        # written into a new folder that replaces its old output when done: the CLI's)
+        source = (Path(resume) if isinstance(resume, (str, os.PathLike))
+                  else self.checkpoint_path if resume else None)
+        resuming = source is not None and source.exists()
         # time_budget: planned after De-Init (mi_grg.training.budget); a resumed run
         # continues its recorded plan. Until then the rule's count stands in.
         plan = None
         if resuming and cfg.time_budget is not None:
-            plan = checkpoint_time_plan(self.checkpoint_path)
+            plan = checkpoint_time_plan(source)
             if plan is None:
-                raise ValueError(f"checkpoint {self.checkpoint_path} has no time plan to "
+                raise ValueError(f"checkpoint {source} has no time plan to "
                                  "resume with time_budget")
         self._schedule(cfg.iterations if cfg.iterations is not None else
                        plan["iterations"] if plan else iteration_rule(geo))
@@ -226,12 +230,12 @@ class Trainer:
         self.final_density_scale = None
         self._stop = None     # where the stop rule fired (views.Stop), set by run()
         if resuming:
-            self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
+            self.state = load_checkpoint(source, self.optimizer, self.densifier,
                                          self.stopper, cfg)
             self.init_info = {"resumed_from": self.state.iteration}
         else:
-            if resume and self.checkpoint_path is not None:
-                print(f"no checkpoint in {self.out}; starting from scratch")
+            if source is not None:
+                print(f"no checkpoint at {source}; starting from scratch")
             g, self.init_info = self._initial_gaussians()
             self.state = TrainState(iteration=0, raw=g.to_raw(),
                                     rng=np.random.default_rng(cfg.seed).bit_generator.state)
@@ -698,7 +702,7 @@ class Trainer:
 
 # ---------------------------------------------------------------------------- methods
 def _train_method(method: str):
-    def run(case: Case, out_dir=None, config=None, resume: bool = False,
+    def run(case: Case, out_dir=None, config=None, resume=False,
             progress: bool = True, **overrides):
         cfg = make_config(method, config, **overrides)
         trainer = Trainer(case, cfg, out_dir=out_dir, progress=progress, resume=resume)
@@ -707,7 +711,8 @@ def _train_method(method: str):
         return trainer.volume(), summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "
-                   "TrainConfig fields (mi_grg.training.config), config (an XML file), resume, "
+                   "TrainConfig fields (mi_grg.training.config), config (an XML file), resume "
+                   "(True, or the checkpoint file to continue from), "
                    "progress, out_dir.")
     return run
 
