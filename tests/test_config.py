@@ -73,7 +73,8 @@ def test_automatic_fields_are_none_in_files_options_and_records(tmp_path):
     case) or an omitted key, and from --option's JSON null or the string none. A 0, which
     older files used for "automatic", is an error that says what to write instead; configs
     recorded by earlier runs (checkpoints, metrics.json) read their 0 as None."""
-    from mi_grg.training.config import AUTO_FIELDS, upgrade_config_dict
+    from mi_grg.training.checkpoint import upgrade_config_dict
+    from mi_grg.training.config import AUTO_FIELDS
     c = make_config("gr")
     assert all(getattr(c, k) is None for k in AUTO_FIELDS if k != "tv_extent")
     assert c.tv_extent == 3.0

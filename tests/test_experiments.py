@@ -199,7 +199,8 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
 def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
     """A gr run that left ``iterations`` automatic is stale where the rule it recorded gives
     another count than today's at its size, not wherever the rule's name differs."""
-    from mi_grg.training.config import ITERATION_RULE, ITERATION_RULES, make_config, stale_keys
+    from mi_grg.lab.staleness import ITERATION_RULES, stale_keys
+    from mi_grg.training.config import ITERATION_RULE, make_config
     from mi_grg.training.trainer import iteration_rule
     from mi_grg.data.simulate import default_geometry
 
@@ -225,7 +226,7 @@ def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
 
 
 def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before
     assert stale_keys({"method": "asd-pocs", "options": {},
                        "method_info": {"protocol": "heldout"}}) == []
@@ -554,7 +555,8 @@ def test_the_checkpoint_interval_never_makes_a_run_stale():
     """checkpoint_every decides only when checkpoints are written: a run recorded with
     another interval (500, the fixed default before it became automatic) is not stale,
     while another value of a field that changes the result is."""
-    from mi_grg.training.config import make_config, stale_keys
+    from mi_grg.lab.staleness import stale_keys
+    from mi_grg.training.config import make_config
 
     def run(**recorded):
         info = {"config": {**make_config("gr").to_dict(), **recorded}, "extent": 3.5,

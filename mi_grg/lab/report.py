@@ -749,7 +749,7 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     older = {}
     for exp, rows in all_rows.items():
         for r in rows:

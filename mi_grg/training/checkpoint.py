@@ -24,10 +24,25 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import ADDED_LATER, BOOKKEEPING, TrainConfig, upgrade_config_dict
+from mi_grg.training.config import AUTO_FIELDS, BOOKKEEPING, TrainConfig
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
+
+# Fields added after runs had been made, with the value that reproduces the behaviour
+# from before they existed: a recorded config (a checkpoint's, a finished run's) that
+# lacks one of them was made with this value (load_checkpoint, and
+# mi_grg.lab.staleness.stale_keys). A field added with a default that CHANGES behaviour
+# must not be listed, so that such runs count as stale and such checkpoints do not resume.
+ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
+               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
+
+
+def upgrade_config_dict(values: dict) -> dict:
+    """A recorded config (checkpoint, metrics.json) in today's spelling: fields of
+    ``AUTO_FIELDS`` recorded as 0 (automatic, before they became optional) become None."""
+    return {k: (None if k in AUTO_FIELDS and v == 0 and not isinstance(v, bool) else v)
+            for k, v in values.items()}
 
 
 @dataclass

@@ -40,8 +40,8 @@ from mi_grg.data.case import Case
 from mi_grg.training.budget import BudgetPlanner, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
-from mi_grg.training.config import (ITERATION_RULE, ITERATION_RULES, TRAIN_EXTENT, TrainConfig,
-                                    make_config)
+from mi_grg.training.config import (ITERATION_RULE, TRAIN_EXTENT, TrainConfig,
+                                    iterations_for_size, make_config)
 from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
 from mi_grg.protocol.early_stop import EarlyStopper
@@ -81,7 +81,7 @@ def iteration_rule(geometry) -> int:
     evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans the
     count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
     """
-    return ITERATION_RULES[ITERATION_RULE](max(geometry.nVoxel))
+    return iterations_for_size(max(geometry.nVoxel))
 
 
 def gaussian_cap(cfg: TrainConfig, geometry) -> int:
@@ -650,7 +650,7 @@ class Trainer:
                                                  if math.isfinite(self.stopper.best)
                                                  else None)},
                    "time_plan": self.time_plan,
-                   # what the automatic fields resolved to (config.stale_keys compares)
+                   # what the automatic fields resolved to (lab.staleness.stale_keys compares)
                    "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
