@@ -205,7 +205,7 @@ def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
     from mi_grg.data.simulate import default_geometry
 
     def run(n, rule):
-        info = {"config": make_config("gr").to_dict(), "extent": 3.5}
+        info = {"config": make_config("gr").to_flat(), "extent": 3.5}
         if rule is not None:
             info["iteration_rule"] = rule
         return {"method": "gr", "options": {}, "nVoxel": [n, n, n], "method_info": info}
@@ -524,14 +524,14 @@ def test_table2_rows_each_add_one_component_to_r2(tmp_path):
     suite's options under each row's own."""
     from mi_grg.lab.plan import table2_variants
     rows = table2_variants()
-    r2, gr = make_config("r2").to_dict(), make_config("gr").to_dict()
+    r2, gr = make_config("r2").to_flat(), make_config("gr").to_flat()
     differ = {k for k in gr if gr[k] != r2[k]}
     assert differ
     assert rows[0][1:3] == ("r2", {}) and rows[-1][1:3] == ("gr", {})
     changed_sets = []
     for run, method, options, label in rows[1:-1]:
         assert method == "r2", run
-        cfg = make_config("r2", **options).to_dict()
+        cfg = make_config("r2", **options).to_flat()
         changed = {k for k in cfg if cfg[k] != r2[k]}
         assert changed and changed <= differ, (run, changed - differ)
         assert all(cfg[k] == gr[k] for k in changed), run
@@ -559,7 +559,7 @@ def test_the_checkpoint_interval_never_makes_a_run_stale():
     from mi_grg.training.config import make_config
 
     def run(**recorded):
-        info = {"config": {**make_config("gr").to_dict(), **recorded}, "extent": 3.5,
+        info = {"config": {**make_config("gr").to_flat(), **recorded}, "extent": 3.5,
                 "iteration_rule": "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"}
         return {"method": "gr", "options": {}, "nVoxel": [64, 64, 64], "method_info": info}
     assert stale_keys(run()) == []

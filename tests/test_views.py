@@ -121,11 +121,11 @@ def test_old_runs_read_as_held_out_all_run():
     today's default it is stale (its result would change), named by this key."""
     from mi_grg.lab.staleness import stale_keys
     assert ADDED_LATER["holdout_until"] == 1.0
-    cfg = make_config("gr").to_dict()
+    cfg = make_config("gr").to_flat()
     del cfg["holdout_until"]
     assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": cfg}}) == \
         ["holdout_until"]
-    pinned = {**cfg, "holdout_until": make_config("gr").holdout_until}
+    pinned = {**cfg, "holdout_until": make_config("gr").protocol.holdout_until}
     assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": pinned}}) == []
 
 
@@ -134,16 +134,16 @@ def test_runs_under_the_old_extent_or_iteration_rule_are_stale():
     the projector's 4.5 and 1500 x n / 64: stale under today's 3.5 and iteration rule.
     Set explicitly (or planned to a time_budget), the field is the user's and stays."""
     from mi_grg.lab.staleness import stale_keys
-    cfg = make_config("gr").to_dict()
+    cfg = make_config("gr").to_flat()
     old = {"method": "gr", "options": {}, "method_info": {"config": cfg}}
     assert stale_keys(old) == ["extent", "iterations"]
     assert stale_keys({**old, "method_info": {"config": cfg, **AUTO}}) == []
     assert stale_keys({**old, "method_info": {"config": cfg, **AUTO, "extent": 4.5}}) == \
         ["extent"]
-    pinned = make_config("gr", extent=4.5, iterations=1500).to_dict()
+    pinned = make_config("gr", extent=4.5, iterations=1500).to_flat()
     assert stale_keys({"method": "gr", "options": {"extent": 4.5, "iterations": 1500},
                        "method_info": {"config": pinned}}) == []
-    budget = make_config("gr", time_budget=300).to_dict()
+    budget = make_config("gr", time_budget=300).to_flat()
     assert stale_keys({"method": "gr", "options": {"time_budget": 300},
                        "method_info": {"config": budget, "extent": TRAIN_EXTENT}}) == []
 
@@ -153,7 +153,7 @@ def test_the_window_does_not_make_runs_without_held_out_views_stale():
     recorded under another window is current, a run with held-out views is not."""
     from mi_grg.lab.staleness import stale_keys
     for every, want in ((0, []), (8, ["holdout_catch_up", "holdout_until"])):
-        cfg = {**make_config("gr", holdout_every=every).to_dict(), "holdout_until": 0.75,
+        cfg = {**make_config("gr", holdout_every=every).to_flat(), "holdout_until": 0.75,
                "holdout_catch_up": True}
         m = {"method": "gr", "options": {"holdout_every": every}, "method_info": {**AUTO, "config": cfg}}
         assert stale_keys(m) == want
@@ -164,7 +164,7 @@ def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
     returned its last state is current; one that stopped, or that returned a kept state, or
     that ran with a wider margin than today's, runs again."""
     from mi_grg.lab.staleness import stale_keys
-    cfg = {k: v for k, v in make_config("gr").to_dict().items() if k != "stop_noise"}
+    cfg = {k: v for k, v in make_config("gr").to_flat().items() if k != "stop_noise"}
 
     def run(stop, returned, used=None):
         c = cfg if used is None else {**cfg, "stop_noise": used}
@@ -181,7 +181,7 @@ def test_runs_with_the_old_split_are_stale():
     """Runs that held out views 0, 8, 16, 24 (the split before f3bf235) run again; runs with
     today's split, or that record no held-out views, do not."""
     from mi_grg.lab.staleness import stale_keys
-    cfg = make_config("gr").to_dict()
+    cfg = make_config("gr").to_flat()
     gr = {"method": "gr", "options": {}, "n_train_views": 25,
           "method_info": {**AUTO, "config": cfg, "held_out_views": [0, 8, 16, 24]}}
     assert stale_keys(gr) == ["held_out_views"]

@@ -8,13 +8,13 @@ runs recorded it, and which options cannot change a run's result.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 from mi_grg.protocol.split import holdout_split
 from mi_grg.training.checkpoint import ADDED_LATER, upgrade_config_dict
-from mi_grg.training.config import (BOOKKEEPING, ITERATION_RULE, PRESETS, TRAIN_EXTENT,
-                                    TrainConfig, iterations_for_size, make_config)
+from mi_grg.training.config import (BOOKKEEPING, FLAT_KEYS, ITERATION_RULE, PRESETS,
+                                    TRAIN_EXTENT, TrainConfig, iterations_for_size,
+                                    make_config)
 
 
 def _rule_sqrt(n: int) -> int:
@@ -61,16 +61,16 @@ def stale_keys(m: dict) -> list:
     split = ["held_out_views"] if _split_changed(m) else []
     if m.get("method") in ("sart", "asd-pocs", "pdhg"):
         rule = (m.get("method_info") or {}).get("stop_rule") or {}
-        if rule and float(rule.get("noise", ADDED_LATER["stop_noise"])) != TrainConfig().stop_noise:
+        now = TrainConfig().protocol.stop_noise
+        if rule and float(rule.get("noise", ADDED_LATER["stop_noise"])) != now:
             split.append("stop_noise")   # decided under another stop margin
     used = (m.get("method_info") or {}).get("config")
     if m.get("method") not in PRESETS or not isinstance(used, dict):
         return split
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
     opts = upgrade_config_dict({k: v for k, v in (m.get("options") or {}).items()
-                                if k in names})
+                                if k in FLAT_KEYS})
     try:
-        now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
+        now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_flat()
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
     used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win

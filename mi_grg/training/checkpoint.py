@@ -117,7 +117,7 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
     meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
             "stopper": stop, "stopped_by": state.stopped_by,
             "seconds": state.seconds, "wall_seconds": state.wall_seconds,
-            "config": cfg.to_dict(), "time_plan": state.time_plan,
+            "config": cfg.to_flat(), "time_plan": state.time_plan,
             "adam_steps": {n: st["step"] for n, st in opt.items()}}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     _atomic_savez(Path(path), **arrays)
@@ -134,7 +134,7 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
         # lack fields added since (their value then: ADDED_LATER).
         used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
-        want = cfg.to_dict()
+        want = cfg.to_flat()
         changed = sorted(k for k in set(used) | set(want)
                          if used.get(k) != want.get(k) and k not in BOOKKEEPING)
         if changed:

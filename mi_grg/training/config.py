@@ -1,4 +1,5 @@
-"""Training hyperparameters: one dataclass, method presets, and XML config files.
+"""Training hyperparameters: one dataclass in named parts, method presets, and XML config
+files.
 
 Config files use Mitsuba's XML property syntax, so they read like the scene files::
 
@@ -8,20 +9,26 @@ Config files use Mitsuba's XML property syntax, so they read like the scene file
         <boolean name="use_pga" value="true"/>
     </training>
 
-Every key must be a field of ``TrainConfig`` (unknown or misspelled keys are an error, with
-a suggestion) and the tag must match the field's type. Fields that can be chosen
+``TrainConfig`` groups its fields into parts (``cfg.schedule``, ``cfg.deinit``,
+``cfg.graph``, ``cfg.densify``, ``cfg.losses``, ``cfg.optim``, ``cfg.protocol``,
+``cfg.run``), as gsplat groups its strategy's. Everything outside the code spells the
+fields flat: config files, ``--option key=value``, the presets and the records of runs
+(metrics.json, checkpoints). ``TrainConfig.from_flat`` / ``to_flat`` map between the two.
+
+Every key must be a field of one of the parts (unknown or misspelled keys are an error,
+with a suggestion) and the tag must match the field's type. Fields that can be chosen
 automatically (``AUTO_FIELDS``) take ``value="none"`` (or are left out) for that, as does
-``time_budget`` for "no budget". Command-line ``--option key=value`` pairs override the file, which overrides the method preset, which overrides the defaults.
+``time_budget`` for "no budget". Command-line ``--option key=value`` pairs override the
+file, which overrides the method preset, which overrides the defaults.
 Defaults are the GR-Gaussian paper's (Sec. 4.1.2) in R2-Gaussian's normalised units
 (volume in [-1, 1]^3).
 """
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from mi_grg.protocol.early_stop import KEEP_STATES, STOP_RULE
 
@@ -43,10 +50,10 @@ PRESETS = {
 }
 
 
-#: The volumes De-Init can start from (``TrainConfig.init``).
+#: The volumes De-Init can start from (``DeInit.init``).
 INIT_VOLUMES = ("fdk", "pdhg")
 
-#: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
+#: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
 #: projector's 4.5: its truncation error is a small fraction of the noise of sparse noisy
 #: views, and it saves training time (docs/benchmarks.md, "Training step").
@@ -71,10 +78,8 @@ def iterations_for_size(n: int) -> int:
 
 
 @dataclass
-class TrainConfig:
-    """Every hyperparameter of GR-Gaussian / R2-Gaussian training."""
-
-    # --- schedule
+class Schedule:
+    """How long the run is and what it starts from."""
     iterations: int | None = None  # None: scaled to the problem size
                                    # (mi_grg.training.trainer.iteration_rule)
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
@@ -82,7 +87,11 @@ class TrainConfig:
                                    # slightly (docs/benchmarks.md)
     extent: float | None = None    # Gaussian support in std devs; None: TRAIN_EXTENT
                                    # (shorter than the projector's default 4.5)
-    # --- De-Init (Sec. 3.3.1)
+
+
+@dataclass
+class DeInit:
+    """De-Init (Sec. 3.3.1): the first Gaussians, sampled from a denoised volume."""
     init: str = "fdk"              # the volume De-Init samples: "fdk" (the paper's FDK of
                                    # the fitted views) or "pdhg" (PDHG's TV reconstruction
                                    # of the fitted views, its weight and iterations chosen
@@ -96,7 +105,11 @@ class TrainConfig:
                                    # as sigma_d x max(nVoxel) / sigma_d_grid voxels of the
                                    # case (0.75 at 64^3); 0: sigma_d in the case's voxels
     density_rescale: float = 0.15  # init densities x this (kernel overlap; R2-Gaussian's)
-    # --- graph (Sec. 3.2)
+
+
+@dataclass
+class Graph:
+    """The kNN graph (Sec. 3.2): the graph-augmented field and its Laplacian term."""
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field
     k: int = 6                     # neighbours in the kNN graph
     graph_s: float | None = None   # weight scale s in exp(-d^2 / s); None: automatic
@@ -106,8 +119,13 @@ class TrainConfig:
                                    # each kernel keeps its source's multiplier 1 + sum w
                                    # (why: mi_grg.training.trainer.carry_density_scale)
     lambda_lap: float = 8e-4       # graph Laplacian weight (raw sum x 50k / N, see train)
-    # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
-    # eval_every) is the paper's for 30k iterations and is scaled to the run's length
+
+
+@dataclass
+class Densification:
+    """PGA densification (Sec. 3.3.2). The window (densify_start/stop/interval, and the
+    protocol's eval_every) is the paper's for 30k iterations and is scaled to the run's
+    length."""
     use_pga: bool = True           # graph term in the densification gradient
     lambda_g: float = 1e-4         # paper's; at 64^3 its term is small against the
                                    # gradient term, so PGA barely changes densification
@@ -121,7 +139,11 @@ class TrainConfig:
                                    # cap. Why: past about half the voxel count the extra
                                    # Gaussians cannot add detail the grid resolves, only
                                    # time (docs/benchmarks.md)
-    # --- losses
+
+
+@dataclass
+class Losses:
+    """The projection loss's SSIM share and the 3-D TV term on a random block."""
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05
     tv_block: int = 32             # edge of the randomly placed TV block, voxels
@@ -131,13 +153,21 @@ class TrainConfig:
     tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
                                    # the same expected gradient (the block is random anyway)
                                    # for half the TV cost (docs/benchmarks.md)
-    # --- Adam learning rates (decay exponentially to lr_final_ratio of these)
+
+
+@dataclass
+class Optim:
+    """Adam's learning rates; each decays exponentially to lr_final_ratio of itself."""
     lr_position: float = 2e-4
     lr_density: float = 1e-2
     lr_scale: float = 5e-3
     lr_rotation: float = 1e-3
     lr_final_ratio: float = 0.1
-    # --- early stopping without ground truth
+
+
+@dataclass
+class Protocol:
+    """Early stopping without ground truth: held-out views, the stop rule, what is kept."""
     holdout_every: int = STOP_RULE.holdout_every  # hold out every n-th training view; 0: none
     holdout_until: float = 0.667   # ... for this fraction of the iterations (the stop rule
                                    # decides only then), then train on every view; 1: held
@@ -160,7 +190,11 @@ class TrainConfig:
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
                                    # (no effect on training); None: at each held-out
                                    # evaluation
-    # --- bookkeeping
+
+
+@dataclass
+class Run:
+    """When checkpoints are written, and a wall-clock budget for the whole training."""
     checkpoint_every: int | None = None  # iterations between checkpoints; None: a tenth
                                    # of the run, 1 to 500 (trainer.checkpoint_interval), so
                                    # that a short run has them too
@@ -169,50 +203,94 @@ class TrainConfig:
                                    # planned from a probe of this machine's speed instead of
                                    # iteration_rule (mi_grg.training.budget); None: no budget
 
-    def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, float) and not math.isfinite(v):
-                raise ConfigError(f"{f.name} must be finite, got {v}")
-        if self.time_budget is not None:
-            if not self.time_budget > 0:
-                raise ConfigError(f"time_budget must be > 0 seconds (or none: no budget), "
-                                  f"got {self.time_budget!r}")
-            if self.iterations is not None:
-                raise ConfigError(f"time_budget ({self.time_budget:g} s) plans the iteration "
-                                  f"count; iterations={self.iterations} would override it: "
-                                  "give one of them")
-        for name in AUTO_FIELDS:
-            v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ConfigError(f"{name} must be > 0 or none (automatic), got {v!r}; "
-                                  "0 no longer means automatic: write none or leave it out")
-        nonneg = [f.name for f in fields(self) if _base_type(f) in ("int", "float")
-                  and getattr(self, f.name) is not None and getattr(self, f.name) < 0]
-        if nonneg:
-            raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
-        if self.k < 1:
-            raise ConfigError("k must be >= 1")
-        if not 0 < self.lr_final_ratio <= 1:
-            raise ConfigError("lr_final_ratio must be in (0, 1]")
-        if self.n_points < 1:
-            raise ConfigError("n_points must be >= 1")
-        if not 0.0 <= self.holdout_until <= 1.0:
-            raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
-                              f"{self.holdout_until}")
-        if self.init not in INIT_VOLUMES:
-            raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
-                              f"{self.init!r}")
-        if self.keep_state not in KEEP_STATES:
-            raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
-                              f"got {self.keep_state!r}")
-        zero = [n for n in ("eval_every", "densify_interval", "tv_every",
-                            "stop_patience") if getattr(self, n) < 1]
-        if zero:
-            raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+#: TrainConfig's parts: attribute -> part class. Field names are unique across the parts,
+#: so that the flat keys (config files, --option, records) name one field each.
+PARTS = {"schedule": Schedule, "deinit": DeInit, "graph": Graph, "densify": Densification,
+         "losses": Losses, "optim": Optim, "protocol": Protocol, "run": Run}
+
+#: Flat key -> (part attribute, dataclasses.Field), in the order files and records list them.
+_FIELDS = {f.name: (part, f) for part, cls in PARTS.items() for f in fields(cls)}
+
+#: Every flat key (config files, --option, metrics.json and checkpoint records).
+FLAT_KEYS = tuple(_FIELDS)
+
+
+@dataclass
+class TrainConfig:
+    """Every hyperparameter of GR-Gaussian / R2-Gaussian training, in named parts (read
+    as ``cfg.losses.lambda_tv``). Files, options and records spell it flat (``lambda_tv``):
+    ``from_flat`` and ``to_flat`` are the one mapping between the two."""
+
+    schedule: Schedule = field(default_factory=Schedule)
+    deinit: DeInit = field(default_factory=DeInit)
+    graph: Graph = field(default_factory=Graph)
+    densify: Densification = field(default_factory=Densification)
+    losses: Losses = field(default_factory=Losses)
+    optim: Optim = field(default_factory=Optim)
+    protocol: Protocol = field(default_factory=Protocol)
+    run: Run = field(default_factory=Run)
+
+    @classmethod
+    def from_flat(cls, values: dict) -> "TrainConfig":
+        """The config of flat ``{key: value}`` (missing keys take their defaults); an
+        unknown key is a ``ConfigError`` with a suggestion. Values are taken as given
+        (``make_config`` coerces strings)."""
+        parts = {part: {} for part in PARTS}
+        for key, value in values.items():
+            _check_key(key)
+            parts[_FIELDS[key][0]][key] = value
+        return cls(**{part: PARTS[part](**kw) for part, kw in parts.items()})
+
+    def to_flat(self) -> dict:
+        """Every field as flat ``{key: value}``, in ``FLAT_KEYS`` order."""
+        return {key: getattr(getattr(self, part), key) for key, (part, _) in _FIELDS.items()}
+
+    def __post_init__(self):
+        _validate(self.to_flat())
+
+
+def _validate(c: dict) -> None:
+    """The checks of a flat config ``c``; each error names the key."""
+    for key, v in c.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ConfigError(f"{key} must be finite, got {v}")
+    if c["time_budget"] is not None:
+        if not c["time_budget"] > 0:
+            raise ConfigError(f"time_budget must be > 0 seconds (or none: no budget), "
+                              f"got {c['time_budget']!r}")
+        if c["iterations"] is not None:
+            raise ConfigError(f"time_budget ({c['time_budget']:g} s) plans the iteration "
+                              f"count; iterations={c['iterations']} would override it: "
+                              "give one of them")
+    for name in AUTO_FIELDS:
+        v = c[name]
+        if v is not None and not v > 0:
+            raise ConfigError(f"{name} must be > 0 or none (automatic), got {v!r}; "
+                              "0 no longer means automatic: write none or leave it out")
+    nonneg = [k for k, v in c.items() if _base_type(_FIELDS[k][1]) in ("int", "float")
+              and v is not None and v < 0]
+    if nonneg:
+        raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
+    if c["k"] < 1:
+        raise ConfigError("k must be >= 1")
+    if not 0 < c["lr_final_ratio"] <= 1:
+        raise ConfigError("lr_final_ratio must be in (0, 1]")
+    if c["n_points"] < 1:
+        raise ConfigError("n_points must be >= 1")
+    if not 0.0 <= c["holdout_until"] <= 1.0:
+        raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
+                          f"{c['holdout_until']}")
+    if c["init"] not in INIT_VOLUMES:
+        raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
+                          f"{c['init']!r}")
+    if c["keep_state"] not in KEEP_STATES:
+        raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
+                          f"got {c['keep_state']!r}")
+    zero = [n for n in ("eval_every", "densify_interval", "tv_every",
+                        "stop_patience") if c[n] < 1]
+    if zero:
+        raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 
 
 class ConfigError(ValueError):
@@ -222,9 +300,6 @@ class ConfigError(ValueError):
 def _base_type(f) -> str:
     """A field's type without "| None" ("int", "float", "bool" or "str")."""
     return f.type.replace(" | None", "")
-
-
-_FIELDS = {f.name: f for f in fields(TrainConfig)}
 _TAG_OF_TYPE = {"int": "integer", "float": "float", "bool": "boolean", "str": "string"}
 _NONE_WORDS = ("none", "null")
 
@@ -238,8 +313,9 @@ def _check_key(key: str) -> None:
 
 def _coerce(key: str, value):
     _check_key(key)
-    kind = _base_type(_FIELDS[key])
-    if "| None" in _FIELDS[key].type and (value is None or (
+    f = _FIELDS[key][1]
+    kind = _base_type(f)
+    if "| None" in f.type and (value is None or (
             isinstance(value, str) and value.strip().lower() in _NONE_WORDS)):
         return None
     try:
@@ -284,9 +360,10 @@ def read_config_xml(path) -> tuple[str | None, dict]:
         if name is None or value is None:
             raise ConfigError(f"{path}: <{el.tag}> needs name and value attributes")
         _check_key(name)
-        want = _TAG_OF_TYPE[_base_type(_FIELDS[name])]
+        kind = _base_type(_FIELDS[name][1])
+        want = _TAG_OF_TYPE[kind]
         if el.tag != want:
-            raise ConfigError(f"{path}: {name} is a {_base_type(_FIELDS[name])}; write <{want} "
+            raise ConfigError(f"{path}: {name} is a {kind}; write <{want} "
                               f"name=\"{name}\" .../>, not <{el.tag}>")
         if name in values:
             raise ConfigError(f"{path}: {name} is given twice")
@@ -299,11 +376,11 @@ def write_config_xml(config: TrainConfig, path, method: str | None = None) -> No
     left automatic is written as value="none"."""
     method_attr = f' method="{method}"' if method else ""
     lines = [f'<training version="1"{method_attr}>']
-    for f in fields(config):
-        v = getattr(config, f.name)
+    for key, v in config.to_flat().items():
         text = ("none" if v is None else str(v).lower() if isinstance(v, bool)
                 else v if isinstance(v, str) else repr(v))
-        lines.append(f'    <{_TAG_OF_TYPE[_base_type(f)]} name="{f.name}" value="{text}"/>')
+        tag = _TAG_OF_TYPE[_base_type(_FIELDS[key][1])]
+        lines.append(f'    <{tag} name="{key}" value="{text}"/>')
     lines.append("</training>\n")
     with open(path, "w") as fh:
         fh.write("\n".join(lines))
@@ -321,4 +398,4 @@ def make_config(method: str = "gr", path=None, **overrides) -> TrainConfig:
         values.update(file_values)
     for key, value in overrides.items():
         values[key] = _coerce(key, value)
-    return TrainConfig(**values)
+    return TrainConfig.from_flat(values)
