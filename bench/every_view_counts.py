@@ -113,7 +113,8 @@ def write(rows: list, variant: str, code: str, stem: str = "every_view_counts",
         by.setdefault(r["method"], []).append(r["delta_db"])
     from mi_grg.training.config import TrainConfig
     result = {"machine": {"variant": variant, "cores": os.cpu_count(), "mi_grg": code},
-              "candidate": candidate, "default_holdout_until": TrainConfig.holdout_until,
+              "candidate": candidate, "default_holdout_until":
+                  TrainConfig().protocol.holdout_until,
               "rows": rows, "target_db": TARGET_DB,
               "mean_delta_db": {m: statistics.mean(v) for m, v in by.items()},
               "mean_delta_db_all": statistics.mean(r["delta_db"] for r in rows)}

@@ -51,7 +51,7 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
     geo = case.geometry
     g0 = Gaussians.load_npz(run_dir / "gaussians.npz")
     n = len(g0)
-    graph = build_graph(g0.positions, k=cfg.k, s=cfg.graph_s)
+    graph = build_graph(g0.positions, k=cfg.graph.k, s=cfg.graph.graph_s)
     m = graph_density_scale(graph)
     rho = mi.Float(g0.densities)
     dr.enable_grad(rho)
@@ -65,11 +65,11 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
         dr.clear_grad(rho)
         means2d = dr.zeros(mi.Vector2f, n)
         dr.enable_grad(means2d)
-        img = project_dr(g, geo, angles=geo.angles[view:view + 1], extent=cfg.extent,
+        img = project_dr(g, geo, angles=geo.angles[view:view + 1], extent=cfg.schedule.extent,
                          density_scale=m, means2d=means2d)
         target = mi.TensorXf(np.ascontiguousarray(case.train[view], np.float32))
         pred = mi.TensorXf(img.array, (nv, nu))
-        dr.backward(projection_loss(pred, target, cfg.lambda_ssim))
+        dr.backward(projection_loss(pred, target, cfg.losses.lambda_ssim))
         data_abs += np.abs(np.asarray(dr.grad(rho)))
         g2 = dr.grad(means2d)
         gn = np.hypot(np.asarray(g2.x) * ndc[0], np.asarray(g2.y) * ndc[1])
@@ -77,13 +77,14 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
         pos_seen += gn > 0
     data_abs /= len(views)
     dr.clear_grad(rho)
-    dr.backward(cfg.lambda_lap * (REFERENCE_N / n) * laplacian_loss(graph, rho, normalise=False))
+    dr.backward(cfg.graph.lambda_lap * (REFERENCE_N / n)
+                * laplacian_loss(graph, rho, normalise=False))
     lap_abs = np.abs(np.asarray(dr.grad(rho)))
     pos = pos_sum / np.maximum(pos_seen, 1)
-    pga = cfg.lambda_g * np.asarray(mean_abs_density_difference(graph, dr.detach(rho)))
+    pga = cfg.densify.lambda_g * np.asarray(mean_abs_density_difference(graph, dr.detach(rho)))
     seen = pos_seen > 0
-    lifted = int(np.sum(seen & (pos <= cfg.densify_grad_threshold)
-                        & (pos + pga > cfg.densify_grad_threshold)))
+    lifted = int(np.sum(seen & (pos <= cfg.densify.densify_grad_threshold)
+                        & (pos + pga > cfg.densify.densify_grad_threshold)))
     tiny = 1e-30
     lap_ratio = lap_abs / np.maximum(data_abs, tiny)
     return {"case": case_dir.name, "n_gaussians": n, "edges": graph.num_edges,
@@ -95,7 +96,7 @@ def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
             "pos_grad_median": float(np.median(pos[seen])),
             "pga_term_median": float(np.median(pga[seen])),
             "pga_ratio_median": float(np.median(pga[seen] / np.maximum(pos[seen], tiny))),
-            "above_tau_pos": int(np.sum(seen & (pos > cfg.densify_grad_threshold))),
+            "above_tau_pos": int(np.sum(seen & (pos > cfg.densify.densify_grad_threshold))),
             "lifted_by_pga": lifted}
 
 
@@ -124,16 +125,16 @@ def main(argv=None) -> None:
     except ValueError:
         shown = a.results
     meta = {"commit": commit, "machine": platform.processor() or platform.machine(),
-            "lambda_lap": cfg.lambda_lap, "lambda_g": cfg.lambda_g,
-            "tau_pos": cfg.densify_grad_threshold, "results": str(shown)}
+            "lambda_lap": cfg.graph.lambda_lap, "lambda_g": cfg.densify.lambda_g,
+            "tau_pos": cfg.densify.densify_grad_threshold, "results": str(shown)}
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "graph_terms.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     lines = [
         "# Graph terms against the data term (`bench/graph_terms.py`)", "",
         f"Trained gr states of Table 1 ({shown}), commit {commit}; lambda_lap = "
-        f"{cfg.lambda_lap:g}, lambda_g = {cfg.lambda_g:g}, tau_pos = "
-        f"{cfg.densify_grad_threshold:g}. Medians over Gaussians; 'ratio' = graph term / data "
-        "term per Gaussian.", "",
+        f"{cfg.graph.lambda_lap:g}, lambda_g = {cfg.densify.lambda_g:g}, tau_pos = "
+        f"{cfg.densify.densify_grad_threshold:g}. Medians over Gaussians; 'ratio' = graph term "
+        "/ data term per Gaussian.", "",
         "| case | Gaussians | median rho | Laplacian / data gradient on rho (median, 90th pct.) "
         "| PGA term / positional gradient (median) | above tau_pos | lifted over tau_pos by PGA |",
         "|---|---|---|---|---|---|---|"]

@@ -117,7 +117,7 @@ def markdown(res: dict) -> str:
           f"{res['trials']} synthetic curves per cell (seed 0), `EarlyStopper(drop=0.005, "
           "patience=2, noise=z)`; sigma: the held-out PSNR's scatter per evaluation (dB), "
           "slope: its trend per judged evaluation (dB). TrainConfig's default: "
-          f"`stop_noise = {TrainConfig().stop_noise:g}`.", "",
+          f"`stop_noise = {TrainConfig().protocol.stop_noise:g}`.", "",
           "## Runs stopped while the held-out PSNR is level or rising", "",
           "| schedule (unjudged + judged evaluations) | sigma | slope | "
           + " | ".join(f"z = {x}" for x in z) + " |",

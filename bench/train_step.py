@@ -132,6 +132,14 @@ def _train_extent():
     return TRAIN_EXTENT
 
 
+def _flat_options(config):
+    """The config's fields by their flat names, whichever code is under test: ``to_flat``
+    where TrainConfig is grouped into parts, its own flat fields before."""
+    from types import SimpleNamespace
+    flat = config.to_flat() if hasattr(config, "to_flat") else config.to_dict()
+    return SimpleNamespace(**flat)
+
+
 class _Step:
     """One training iteration, as Trainer.run composes it (see the module docstring)."""
 
@@ -146,12 +154,13 @@ class _Step:
         from mi_grg.training.optim import Adam
         self.raw, train = _load_state(method, n)
         self.geo = default_geometry(n=n, det=int(1.5 * n), views=25)
-        self.cfg = cfg = make_config(method, None)
+        config = make_config(method, None)
+        self.cfg = cfg = _flat_options(config)     # the options, read by their flat names
         from mi_grg.training.trainer import iteration_rule   # the code's own (Adam's decay)
         self.iterations = iteration_rule(self.geo)
         self.targets = [mi.TensorXf(np.ascontiguousarray(t)) for t in train]
-        self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
-        self.densifier = PGADensifier(DensifyConfig.from_train_config(cfg), seed=cfg.seed)
+        self.optimizer = Adam.from_train_config(config, max_steps=self.iterations)
+        self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.graph = self.ds = None
         if self.uses_graph:

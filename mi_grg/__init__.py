@@ -16,8 +16,29 @@ _configure_llvm(required=_requested.startswith("llvm"))
 
 import mitsuba as _mi  # noqa: E402  (after DRJIT_LIBLLVM_PATH is set)
 
-from mi_grg.variant import available_variants, set_variant, variant  # noqa: E402
+from mi_grg.variant import (available_variants, on_set_variant, set_variant,  # noqa: E402
+                            variant)
 
+
+def _plugin_modules() -> list[str]:
+    """Every module in plugins/ (installed as mi_grg.plugins); each registers itself."""
+    import pkgutil
+    import mi_grg.plugins
+    return sorted(m.name for m in pkgutil.iter_modules(mi_grg.plugins.__path__)
+                  if not m.name.startswith("_"))
+
+
+def _register_plugins(name: str) -> None:
+    """(Re)load each plugin module not yet registered for variant ``name``."""
+    import importlib
+    for mod in _plugin_modules():
+        m = importlib.import_module("mi_grg.plugins." + mod)
+        if getattr(m, "_registered_variant", None) != name:
+            importlib.reload(m)
+
+
+# Here, not in mi_grg.variant: the plugins import core and data, which sit above it.
+on_set_variant(_register_plugins)
 set_variant(_requested)
 
 from mi_grg.core.geometry import Geometry  # noqa: E402

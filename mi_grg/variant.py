@@ -1,26 +1,28 @@
 """One switch for the Mitsuba/Dr.Jit variant: ``llvm_ad_mono`` (CPU) or ``cuda_ad_mono`` (GPU).
 
 All mi_grg code looks up Dr.Jit types (``mi.Float``, ``mi.Point3f``...) at call time, so
-the same code runs on either variant. Setting the variant also (re)registers our Mitsuba
-plugins (``plugins/``), because Python plugin classes are bound to the variant that was
-active when they were defined.
+the same code runs on either variant. Setting the variant also runs the hooks given to
+``on_set_variant``: the package registers its Mitsuba plugins (``plugins/``) through one
+(``mi_grg.__init__``), because Python plugin classes are bound to the variant that was
+active when they were defined. A hook rather than an import, because the plugins sit
+above ``core`` and ``data``, which set the variant themselves before they parse a scene.
 """
 from __future__ import annotations
 
-import importlib
+from typing import Callable
 
 import mitsuba as mi
 
 SUPPORTED = ("llvm_ad_mono", "cuda_ad_mono")
 DEFAULT = "llvm_ad_mono"
 
+_HOOKS: list = []
 
-def plugin_modules() -> list[str]:
-    """Every module in plugins/ (installed as mi_grg.plugins); each registers itself."""
-    import pkgutil
-    import mi_grg.plugins
-    return sorted(m.name for m in pkgutil.iter_modules(mi_grg.plugins.__path__)
-                  if not m.name.startswith("_"))
+
+def on_set_variant(hook: Callable[[str], None]) -> None:
+    """Call ``hook(name)`` after every ``set_variant`` (once per hook)."""
+    if hook not in _HOOKS:
+        _HOOKS.append(hook)
 
 
 def available_variants() -> list[str]:
@@ -41,7 +43,8 @@ def available_variants() -> list[str]:
 
 
 def set_variant(name: str = DEFAULT) -> str:
-    """Activate a variant and register mi_grg's plugins for it. Returns the name."""
+    """Activate a variant and run the ``on_set_variant`` hooks for it (mi_grg's plugins
+    register themselves for it). Returns the name."""
     if name not in SUPPORTED:
         raise ValueError(f"variant must be one of {SUPPORTED}, got {name!r}")
     if name not in mi.variants():
@@ -53,11 +56,8 @@ def set_variant(name: str = DEFAULT) -> str:
                                "none was found. Use 'llvm_ad_mono' (CPU).")
     if mi.variant() != name:
         mi.set_variant(name)
-    for mod in plugin_modules():
-        full = "mi_grg.plugins." + mod
-        m = importlib.import_module(full)
-        if getattr(m, "_registered_variant", None) != name:
-            m = importlib.reload(m)
+    for hook in _HOOKS:
+        hook(name)
     return name
 
 

@@ -1,4 +1,4 @@
-"""Training to a wall-clock budget (TrainConfig.time_budget, mi_grg.training.budget):
+"""Training to a wall-clock budget (TrainConfig.run.time_budget, mi_grg.training.budget):
 the plan's arithmetic against brute force, the probe leaving the run untouched, the deadline,
 resuming, and the errors that name the option."""
 import dataclasses
@@ -159,17 +159,17 @@ def test_config_errors_name_time_budget():
     with pytest.raises(ConfigError, match=r"time_budget \(60 s\) plans the iteration count; "
                                           r"iterations=100"):
         make_config("gr", time_budget=60, iterations=100)
-    assert make_config("gr", time_budget="none").time_budget is None
-    assert make_config("gr", time_budget="90").time_budget == 90.0
+    assert make_config("gr", time_budget="none").run.time_budget is None
+    assert make_config("gr", time_budget="90").run.time_budget == 90.0
 
 
 def test_time_budget_in_an_xml_config(tmp_path):
     p = tmp_path / "c.xml"
     p.write_text('<training method="r2"><float name="time_budget" value="120"/></training>')
     assert read_config_xml(p) == ("r2", {"time_budget": 120.0})
-    assert make_config("r2", p).time_budget == 120.0
+    assert make_config("r2", p).run.time_budget == 120.0
     p.write_text('<training><float name="time_budget" value="none"/></training>')
-    assert make_config("r2", p).time_budget is None
+    assert make_config("r2", p).run.time_budget is None
 
 
 # ---------------------------------------------------------------------------- in training

@@ -297,9 +297,9 @@ def test_accumulate_multi_view_visibility(variant, rng):
 def test_from_train_config_and_graph_module(variant, rng):
     """Composition with mi_grg.training.config and mi_grg.training.graph."""
     from mi_grg.training import config, graph
-    cfg = config.TrainConfig(densify_interval=50, densify_start=100, densify_stop=1000,
-                             densify_grad_threshold=3e-5, lambda_g=2e-4, use_pga=True,
-                             max_gaussians=1234)
+    cfg = config.TrainConfig(densify=config.Densification(
+        densify_interval=50, densify_start=100, densify_stop=1000, densify_grad_threshold=3e-5,
+        lambda_g=2e-4, use_pga=True, max_gaussians=1234))
     dc = DensifyConfig.from_train_config(cfg)
     assert (dc.interval, dc.start, dc.stop, dc.tau_pos, dc.lambda_g, dc.use_graph,
             dc.max_count) == (50, 100, 1000, 3e-5, 2e-4, True, 1234)

@@ -199,12 +199,13 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
 def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
     """A gr run that left ``iterations`` automatic is stale where the rule it recorded gives
     another count than today's at its size, not wherever the rule's name differs."""
-    from mi_grg.training.config import ITERATION_RULE, ITERATION_RULES, make_config, stale_keys
+    from mi_grg.lab.staleness import ITERATION_RULES, stale_keys
+    from mi_grg.training.config import ITERATION_RULE, make_config
     from mi_grg.training.trainer import iteration_rule
     from mi_grg.data.simulate import default_geometry
 
     def run(n, rule):
-        info = {"config": make_config("gr").to_dict(), "extent": 3.5}
+        info = {"config": make_config("gr").to_flat(), "extent": 3.5}
         if rule is not None:
             info["iteration_rule"] = rule
         return {"method": "gr", "options": {}, "nVoxel": [n, n, n], "method_info": info}
@@ -225,7 +226,7 @@ def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
 
 
 def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before
     assert stale_keys({"method": "asd-pocs", "options": {},
                        "method_info": {"protocol": "heldout"}}) == []
@@ -523,14 +524,14 @@ def test_table2_rows_each_add_one_component_to_r2(tmp_path):
     suite's options under each row's own."""
     from mi_grg.lab.plan import table2_variants
     rows = table2_variants()
-    r2, gr = make_config("r2").to_dict(), make_config("gr").to_dict()
+    r2, gr = make_config("r2").to_flat(), make_config("gr").to_flat()
     differ = {k for k in gr if gr[k] != r2[k]}
     assert differ
     assert rows[0][1:3] == ("r2", {}) and rows[-1][1:3] == ("gr", {})
     changed_sets = []
     for run, method, options, label in rows[1:-1]:
         assert method == "r2", run
-        cfg = make_config("r2", **options).to_dict()
+        cfg = make_config("r2", **options).to_flat()
         changed = {k for k in cfg if cfg[k] != r2[k]}
         assert changed and changed <= differ, (run, changed - differ)
         assert all(cfg[k] == gr[k] for k in changed), run
@@ -554,10 +555,11 @@ def test_the_checkpoint_interval_never_makes_a_run_stale():
     """checkpoint_every decides only when checkpoints are written: a run recorded with
     another interval (500, the fixed default before it became automatic) is not stale,
     while another value of a field that changes the result is."""
-    from mi_grg.training.config import make_config, stale_keys
+    from mi_grg.lab.staleness import stale_keys
+    from mi_grg.training.config import make_config
 
     def run(**recorded):
-        info = {"config": {**make_config("gr").to_dict(), **recorded}, "extent": 3.5,
+        info = {"config": {**make_config("gr").to_flat(), **recorded}, "extent": 3.5,
                 "iteration_rule": "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"}
         return {"method": "gr", "options": {}, "nVoxel": [64, 64, 64], "method_info": info}
     assert stale_keys(run()) == []

@@ -217,8 +217,9 @@ def test_state_dict_roundtrip(variant, rng):
 
 def test_from_train_config(variant):
     from mi_grg.training import config
-    cfg = config.TrainConfig(lr_position=1e-3, lr_density=2e-2, lr_scale=3e-3,
-                             lr_rotation=4e-3, lr_final_ratio=0.5)
+    cfg = config.TrainConfig(optim=config.Optim(lr_position=1e-3, lr_density=2e-2,
+                                                lr_scale=3e-3, lr_rotation=4e-3,
+                                                lr_final_ratio=0.5))
     opt = Adam.from_train_config(cfg, max_steps=100)
     assert opt.lr0 == {"positions": 1e-3, "raw_densities": 2e-2, "raw_scales": 3e-3,
                        "raw_rotations": 4e-3}

@@ -249,7 +249,7 @@ def test_early_stop_on_held_out_views_keeps_the_chosen_state(tiny_case, monkeypa
     np.testing.assert_array_equal(np.asarray(t.state.raw["raw_densities"]), seen[kept_at])
     assert not np.array_equal(seen[375], seen[500])       # the two candidates differ
     # the config's patience reaches the stopper (default 2: mi_grg.protocol.early_stop says why)
-    assert make_config("gr").stop_patience == 2
+    assert make_config("gr").protocol.stop_patience == 2
     t3 = Trainer(tiny_case, make_config("gr", iterations=10, stop_patience=3, stop_noise=0.5,
                                         **TINY), progress=False)
     assert (t3.stopper.patience, t3.stopper.noise) == (3, 0.5)

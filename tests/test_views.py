@@ -7,8 +7,8 @@ import pytest
 import mi_grg
 from mi_grg.data.noise import NoiseModel
 from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
-from mi_grg.training.config import (ADDED_LATER, ITERATION_RULE, TRAIN_EXTENT, ConfigError,
-                                    make_config)
+from mi_grg.training.checkpoint import ADDED_LATER
+from mi_grg.training.config import ITERATION_RULE, TRAIN_EXTENT, ConfigError, make_config
 from mi_grg.training.trainer import Trainer
 from mi_grg.protocol.split import MIN_DECISION_VIEWS, holdout_split
 from mi_grg.protocol.views import Stop, ViewProtocol, stop_from
@@ -119,13 +119,13 @@ def test_stop_from_reads_the_stopper_state():
 def test_old_runs_read_as_held_out_all_run():
     """A run recorded before the field existed held its views out all run (1.0), so with
     today's default it is stale (its result would change), named by this key."""
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     assert ADDED_LATER["holdout_until"] == 1.0
-    cfg = make_config("gr").to_dict()
+    cfg = make_config("gr").to_flat()
     del cfg["holdout_until"]
     assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": cfg}}) == \
         ["holdout_until"]
-    pinned = {**cfg, "holdout_until": make_config("gr").holdout_until}
+    pinned = {**cfg, "holdout_until": make_config("gr").protocol.holdout_until}
     assert stale_keys({"method": "gr", "options": {}, "method_info": {**AUTO, "config": pinned}}) == []
 
 
@@ -133,17 +133,17 @@ def test_runs_under_the_old_extent_or_iteration_rule_are_stale():
     """A run that left extent / iterations automatic and recorded no resolved values ran at
     the projector's 4.5 and 1500 x n / 64: stale under today's 3.5 and iteration rule.
     Set explicitly (or planned to a time_budget), the field is the user's and stays."""
-    from mi_grg.training.config import stale_keys
-    cfg = make_config("gr").to_dict()
+    from mi_grg.lab.staleness import stale_keys
+    cfg = make_config("gr").to_flat()
     old = {"method": "gr", "options": {}, "method_info": {"config": cfg}}
     assert stale_keys(old) == ["extent", "iterations"]
     assert stale_keys({**old, "method_info": {"config": cfg, **AUTO}}) == []
     assert stale_keys({**old, "method_info": {"config": cfg, **AUTO, "extent": 4.5}}) == \
         ["extent"]
-    pinned = make_config("gr", extent=4.5, iterations=1500).to_dict()
+    pinned = make_config("gr", extent=4.5, iterations=1500).to_flat()
     assert stale_keys({"method": "gr", "options": {"extent": 4.5, "iterations": 1500},
                        "method_info": {"config": pinned}}) == []
-    budget = make_config("gr", time_budget=300).to_dict()
+    budget = make_config("gr", time_budget=300).to_flat()
     assert stale_keys({"method": "gr", "options": {"time_budget": 300},
                        "method_info": {"config": budget, "extent": TRAIN_EXTENT}}) == []
 
@@ -151,9 +151,9 @@ def test_runs_under_the_old_extent_or_iteration_rule_are_stale():
 def test_the_window_does_not_make_runs_without_held_out_views_stale():
     """holdout_until / holdout_catch_up act on held-out views only: a holdout_every=0 run
     recorded under another window is current, a run with held-out views is not."""
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     for every, want in ((0, []), (8, ["holdout_catch_up", "holdout_until"])):
-        cfg = {**make_config("gr", holdout_every=every).to_dict(), "holdout_until": 0.75,
+        cfg = {**make_config("gr", holdout_every=every).to_flat(), "holdout_until": 0.75,
                "holdout_catch_up": True}
         m = {"method": "gr", "options": {"holdout_every": every}, "method_info": {**AUTO, "config": cfg}}
         assert stale_keys(m) == want
@@ -163,8 +163,8 @@ def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
     """stop_noise only widens the margin: a run recorded without it (0) that never stopped and
     returned its last state is current; one that stopped, or that returned a kept state, or
     that ran with a wider margin than today's, runs again."""
-    from mi_grg.training.config import stale_keys
-    cfg = {k: v for k, v in make_config("gr").to_dict().items() if k != "stop_noise"}
+    from mi_grg.lab.staleness import stale_keys
+    cfg = {k: v for k, v in make_config("gr").to_flat().items() if k != "stop_noise"}
 
     def run(stop, returned, used=None):
         c = cfg if used is None else {**cfg, "stop_noise": used}
@@ -180,8 +180,8 @@ def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
 def test_runs_with_the_old_split_are_stale():
     """Runs that held out views 0, 8, 16, 24 (the split before f3bf235) run again; runs with
     today's split, or that record no held-out views, do not."""
-    from mi_grg.training.config import stale_keys
-    cfg = make_config("gr").to_dict()
+    from mi_grg.lab.staleness import stale_keys
+    cfg = make_config("gr").to_flat()
     gr = {"method": "gr", "options": {}, "n_train_views": 25,
           "method_info": {**AUTO, "config": cfg, "held_out_views": [0, 8, 16, 24]}}
     assert stale_keys(gr) == ["held_out_views"]

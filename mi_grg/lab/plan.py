@@ -42,8 +42,8 @@ class RunSpec:
 
 
 def _train_fields() -> set:
-    from mi_grg.training.config import TrainConfig
-    return {f.name for f in dataclasses.fields(TrainConfig)}
+    from mi_grg.training.config import FLAT_KEYS
+    return set(FLAT_KEYS)
 
 
 def canonical_options(method: str, options: dict) -> dict:
@@ -53,10 +53,10 @@ def canonical_options(method: str, options: dict) -> dict:
     options = dict(options)
     if method in TRAINED:
         from mi_grg.training.config import make_config
-        base = make_config(method).to_dict()
+        base = make_config(method).to_flat()
         cfg = make_config(method, **{k: v for k, v in options.items() if k in base})
         return {k: v for k, v in options.items()
-                if k not in base or cfg.to_dict()[k] != base[k]}
+                if k not in base or cfg.to_flat()[k] != base[k]}
     try:
         params = inspect.signature(get_method(method)).parameters
     except (ValueError, TypeError):
@@ -89,11 +89,11 @@ def table2_variants() -> list:
     from mi_grg.training.config import TrainConfig
     d = TrainConfig()
     return [("r2", "r2", {}, "R2-Gaussian (baseline)"),
-            ("r2+deinit", "r2", {"sigma_d": d.sigma_d}, "+ De-Init"),
+            ("r2+deinit", "r2", {"sigma_d": d.deinit.sigma_d}, "+ De-Init"),
             ("r2+pga", "r2", {"use_pga": True}, "+ PGA"),
             # the Laplacian alone: with r2+graph it separates the field's effect
-            ("r2+lap", "r2", {"lambda_lap": d.lambda_lap}, "+ Laplacian"),
-            ("r2+graph", "r2", {"use_graph_field": True, "lambda_lap": d.lambda_lap},
+            ("r2+lap", "r2", {"lambda_lap": d.graph.lambda_lap}, "+ Laplacian"),
+            ("r2+graph", "r2", {"use_graph_field": True, "lambda_lap": d.graph.lambda_lap},
              "+ graph field & Laplacian"),
             ("gr", "gr", {}, "GR-Gaussian (all)")]
 

@@ -388,9 +388,9 @@ def replay_early_stop(iterations, heldout, drop=None, patience=None, start=0, no
     from mi_grg.training.config import TrainConfig
     from mi_grg.protocol.early_stop import EarlyStopper
     cfg = TrainConfig()
-    st = EarlyStopper(drop=cfg.stop_drop if drop is None else drop,
-                      patience=cfg.stop_patience if patience is None else patience,
-                      noise=cfg.stop_noise if noise is None else noise)
+    st = EarlyStopper(drop=cfg.protocol.stop_drop if drop is None else drop,
+                      patience=cfg.protocol.stop_patience if patience is None else patience,
+                      noise=cfg.protocol.stop_noise if noise is None else noise)
     for it, v in zip(iterations, heldout):
         if v is None:
             continue
@@ -749,7 +749,7 @@ def _setup_md(all_rows: dict) -> str:
             planned = sorted({b for _, b in its if b is not None})
             lines.append(f"- {m}: {len(its)} runs, {min(run)}-{max(run)} iterations run "
                          f"(median {int(np.median(run))}), planned {planned}")
-    from mi_grg.training.config import stale_keys
+    from mi_grg.lab.staleness import stale_keys
     older = {}
     for exp, rows in all_rows.items():
         for r in rows:
@@ -876,9 +876,9 @@ def _iterations_md(it, out: Path, img_dir: Path, rel: str) -> list:
         md += ["Held-out-view PSNR (the early-stopping signal, no ground truth) and 3-D PSNR "
                "(when logged) against iteration. Solid: the run with early stopping disabled "
                "(stop_drop 0.99) over the full schedule, with the iteration where the default "
-               f"rule (stop when held-out PSNR is more than {100 * tc.stop_drop:g} % and "
-               f"{tc.stop_noise:g} x its scatter between evaluations below "
-               f"its best at {tc.stop_patience} evaluation(s) in a row, judged once "
+               f"rule (stop when held-out PSNR is more than {100 * tc.protocol.stop_drop:g} % and "
+               f"{tc.protocol.stop_noise:g} x its scatter between evaluations below "
+               f"its best at {tc.protocol.stop_patience} evaluation(s) in a row, judged once "
                "densification has ended) would have stopped it (dotted, replayed from its "
                "log); dashed: the normal run, its actual stop dash-dotted.", ""]
         for case, png, facts in plot_iterations(it, img_dir):

@@ -50,7 +50,7 @@ import numpy as np
 from mi_grg.lab.curves import register_experiment_methods
 from mi_grg.lab.plan import RunSpec, plan_experiment
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
-from mi_grg.training.config import stale_keys
+from mi_grg.lab.staleness import stale_keys
 
 
 def _worker_setup(variant: str, threads: int | None, extra: dict) -> None:

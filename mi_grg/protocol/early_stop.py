@@ -11,7 +11,7 @@ wobbles around that trend by about the margin itself, so a single dip ended runs
 recovered at the next evaluation (docs/benchmarks.md, "Measurements behind defaults").
 The default is 2 (``STOP_RULE``).
 
-Which state to keep (``TrainConfig.keep_state``): the same wobble makes "the state with the
+Which state to keep (``Protocol.keep_state`` of ``TrainConfig``): the same wobble makes "the state with the
 highest held-out PSNR" an early state by chance, with a worse 3-D PSNR than a later state
 within the margin (docs/benchmarks.md, "Reconstruction"). "latest" (the default) therefore
 keeps the LATEST state whose value lies within the stop rule's margin of the best (its
@@ -35,7 +35,7 @@ import math
 import statistics
 from dataclasses import dataclass, field
 
-#: Which state a run keeps (``TrainConfig.keep_state``, ``EarlyStopper.keep``).
+#: Which state a run keeps (``Protocol.keep_state`` of ``TrainConfig``, ``EarlyStopper.keep``).
 KEEP_STATES = ("latest", "best")
 
 

@@ -1,4 +1,4 @@
-"""A training run planned to a wall-clock budget (``TrainConfig.time_budget``).
+"""A training run planned to a wall-clock budget (``Run.time_budget`` of ``TrainConfig``).
 
 With ``time_budget = SECONDS`` the trainer does not take its iteration count from
 ``trainer.iteration_rule`` but plans it, after De-Init, from what this machine measures:

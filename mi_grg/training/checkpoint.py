@@ -24,10 +24,25 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import ADDED_LATER, BOOKKEEPING, TrainConfig, upgrade_config_dict
+from mi_grg.training.config import AUTO_FIELDS, BOOKKEEPING, TrainConfig
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
+
+# Fields added after runs had been made, with the value that reproduces the behaviour
+# from before they existed: a recorded config (a checkpoint's, a finished run's) that
+# lacks one of them was made with this value (load_checkpoint, and
+# mi_grg.lab.staleness.stale_keys). A field added with a default that CHANGES behaviour
+# must not be listed, so that such runs count as stale and such checkpoints do not resume.
+ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
+               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
+
+
+def upgrade_config_dict(values: dict) -> dict:
+    """A recorded config (checkpoint, metrics.json) in today's spelling: fields of
+    ``AUTO_FIELDS`` recorded as 0 (automatic, before they became optional) become None."""
+    return {k: (None if k in AUTO_FIELDS and v == 0 and not isinstance(v, bool) else v)
+            for k, v in values.items()}
 
 
 @dataclass
@@ -102,7 +117,7 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
     meta = {"iteration": state.iteration, "rng": state.rng, "log": state.log,
             "stopper": stop, "stopped_by": state.stopped_by,
             "seconds": state.seconds, "wall_seconds": state.wall_seconds,
-            "config": cfg.to_dict(), "time_plan": state.time_plan,
+            "config": cfg.to_flat(), "time_plan": state.time_plan,
             "adam_steps": {n: st["step"] for n, st in opt.items()}}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     _atomic_savez(Path(path), **arrays)
@@ -119,7 +134,7 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
         # lack fields added since (their value then: ADDED_LATER).
         used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
-        want = cfg.to_dict()
+        want = cfg.to_flat()
         changed = sorted(k for k in set(used) | set(want)
                          if used.get(k) != want.get(k) and k not in BOOKKEEPING)
         if changed:

@@ -1,4 +1,5 @@
-"""Training hyperparameters: one dataclass, method presets, and XML config files.
+"""Training hyperparameters: one dataclass in named parts, method presets, and XML config
+files.
 
 Config files use Mitsuba's XML property syntax, so they read like the scene files::
 
@@ -8,30 +9,38 @@ Config files use Mitsuba's XML property syntax, so they read like the scene file
         <boolean name="use_pga" value="true"/>
     </training>
 
-Every key must be a field of ``TrainConfig`` (unknown or misspelled keys are an error, with
-a suggestion) and the tag must match the field's type. Fields that can be chosen
+``TrainConfig`` groups its fields into parts (``cfg.schedule``, ``cfg.deinit``,
+``cfg.graph``, ``cfg.densify``, ``cfg.losses``, ``cfg.optim``, ``cfg.protocol``,
+``cfg.run``), as gsplat groups its strategy's. Everything outside the code spells the
+fields flat: config files, ``--option key=value``, the presets and the records of runs
+(metrics.json, checkpoints). ``TrainConfig.from_flat`` / ``to_flat`` map between the two.
+
+Every key must be a field of one of the parts (unknown or misspelled keys are an error,
+with a suggestion) and the tag must match the field's type. Fields that can be chosen
 automatically (``AUTO_FIELDS``) take ``value="none"`` (or are left out) for that, as does
-``time_budget`` for "no budget". Command-line ``--option key=value`` pairs override the file, which overrides the method preset, which overrides the defaults.
+``time_budget`` for "no budget". Command-line ``--option key=value`` pairs override the
+file, which overrides the method preset, which overrides the defaults.
 Defaults are the GR-Gaussian paper's (Sec. 4.1.2) in R2-Gaussian's normalised units
 (volume in [-1, 1]^3).
 """
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from mi_grg.protocol.early_stop import KEEP_STATES, STOP_RULE
 
 #: Fields whose None means "automatic" (each field's comment says what is chosen). Records
-#: written before they were optional spell that 0 (``upgrade_config_dict``).
+#: written before they were optional spell that 0
+#: (``mi_grg.training.checkpoint.upgrade_config_dict``).
 AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
                "checkpoint_every")
 
 #: Fields that cannot change a run's result (when its checkpoints are written): a resume
-#: may change them, and a finished run is not stale for them (``stale_keys``).
+#: may change them, and a finished run is not stale for them
+#: (``mi_grg.lab.staleness.stale_keys``).
 BOOKKEEPING = ("checkpoint_every",)
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
@@ -41,17 +50,10 @@ PRESETS = {
 }
 
 
-# Fields added after runs had been made, with the value that reproduces the behaviour
-# from before they existed: a finished run whose recorded config lacks one of them was
-# made with this value (stale_keys). A field added with a default
-# that CHANGES behaviour must not be listed, so that such runs count as stale.
-ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
-               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
-
-#: The volumes De-Init can start from (``TrainConfig.init``).
+#: The volumes De-Init can start from (``DeInit.init``).
 INIT_VOLUMES = ("fdk", "pdhg")
 
-#: Training's truncation extent (std devs) when ``TrainConfig.extent`` is None: the
+#: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
 #: projector's 4.5: its truncation error is a small fraction of the noise of sparse noisy
 #: views, and it saves training time (docs/benchmarks.md, "Training step").
@@ -63,44 +65,21 @@ TRAIN_EXTENT = 3.5
 ITERATIONS_AT_64 = 3000
 
 
-def _rule_sqrt(n: int) -> int:
-    return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
+#: Today's rule, as metrics.json records it (``method_info.iteration_rule``).
+ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
 
 
-def _rule_linear_to_2x(n: int) -> int:
+def iterations_for_size(n: int) -> int:
+    """Today's automatic iteration count for n = max(nVoxel) (``ITERATION_RULE``; why:
+    ``mi_grg.training.trainer.iteration_rule``)."""
     if n <= 64:
-        return _rule_sqrt(n)
+        return max(500, int(round(ITERATIONS_AT_64 * math.sqrt(n / 64))))
     return int(round(ITERATIONS_AT_64 * min(n / 64, 2.0)))
 
 
-def _rule_1500(n: int) -> int:
-    if n >= 64:
-        return int(round(1500 * n / 64))
-    return max(500, int(round(1500 * math.sqrt(n / 64))))
-
-
-#: Today's rule, as metrics.json records it (``method_info.iteration_rule``).
-ITERATION_RULE = "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above"
-#: The automatic iteration rules by their recorded name: n = max(nVoxel) -> iterations.
-#: ``stale_keys`` compares the count a run's recorded rule gave with today's, so that a
-#: rule change marks only the sizes whose count it changed.
-ITERATION_RULES = {
-    "1500*n/64": _rule_1500,                    # the first rule (runs did not record it)
-    "3000*sqrt(n/64)": _rule_sqrt,              # the second
-    ITERATION_RULE: _rule_linear_to_2x,
-}
-
-
-#: Options of the held-out window (mi_grg.protocol.views): without held-out views
-#: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
-WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
-
-
 @dataclass
-class TrainConfig:
-    """Every hyperparameter of GR-Gaussian / R2-Gaussian training."""
-
-    # --- schedule
+class Schedule:
+    """How long the run is and what it starts from."""
     iterations: int | None = None  # None: scaled to the problem size
                                    # (mi_grg.training.trainer.iteration_rule)
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
@@ -108,7 +87,11 @@ class TrainConfig:
                                    # slightly (docs/benchmarks.md)
     extent: float | None = None    # Gaussian support in std devs; None: TRAIN_EXTENT
                                    # (shorter than the projector's default 4.5)
-    # --- De-Init (Sec. 3.3.1)
+
+
+@dataclass
+class DeInit:
+    """De-Init (Sec. 3.3.1): the first Gaussians, sampled from a denoised volume."""
     init: str = "fdk"              # the volume De-Init samples: "fdk" (the paper's FDK of
                                    # the fitted views) or "pdhg" (PDHG's TV reconstruction
                                    # of the fitted views, its weight and iterations chosen
@@ -122,7 +105,11 @@ class TrainConfig:
                                    # as sigma_d x max(nVoxel) / sigma_d_grid voxels of the
                                    # case (0.75 at 64^3); 0: sigma_d in the case's voxels
     density_rescale: float = 0.15  # init densities x this (kernel overlap; R2-Gaussian's)
-    # --- graph (Sec. 3.2)
+
+
+@dataclass
+class Graph:
+    """The kNN graph (Sec. 3.2): the graph-augmented field and its Laplacian term."""
     use_graph_field: bool = True   # Eq. 10/13 graph-augmented density field
     k: int = 6                     # neighbours in the kNN graph
     graph_s: float | None = None   # weight scale s in exp(-d^2 / s); None: automatic
@@ -132,8 +119,13 @@ class TrainConfig:
                                    # each kernel keeps its source's multiplier 1 + sum w
                                    # (why: mi_grg.training.trainer.carry_density_scale)
     lambda_lap: float = 8e-4       # graph Laplacian weight (raw sum x 50k / N, see train)
-    # --- PGA densification (Sec. 3.3.2); the schedule (densify_start/stop/interval and
-    # eval_every) is the paper's for 30k iterations and is scaled to the run's length
+
+
+@dataclass
+class Densification:
+    """PGA densification (Sec. 3.3.2). The window (densify_start/stop/interval, and the
+    protocol's eval_every) is the paper's for 30k iterations and is scaled to the run's
+    length."""
     use_pga: bool = True           # graph term in the densification gradient
     lambda_g: float = 1e-4         # paper's; at 64^3 its term is small against the
                                    # gradient term, so PGA barely changes densification
@@ -147,7 +139,11 @@ class TrainConfig:
                                    # cap. Why: past about half the voxel count the extra
                                    # Gaussians cannot add detail the grid resolves, only
                                    # time (docs/benchmarks.md)
-    # --- losses
+
+
+@dataclass
+class Losses:
+    """The projection loss's SSIM share and the 3-D TV term on a random block."""
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05
     tv_block: int = 32             # edge of the randomly placed TV block, voxels
@@ -157,13 +153,21 @@ class TrainConfig:
     tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
                                    # the same expected gradient (the block is random anyway)
                                    # for half the TV cost (docs/benchmarks.md)
-    # --- Adam learning rates (decay exponentially to lr_final_ratio of these)
+
+
+@dataclass
+class Optim:
+    """Adam's learning rates; each decays exponentially to lr_final_ratio of itself."""
     lr_position: float = 2e-4
     lr_density: float = 1e-2
     lr_scale: float = 5e-3
     lr_rotation: float = 1e-3
     lr_final_ratio: float = 0.1
-    # --- early stopping without ground truth
+
+
+@dataclass
+class Protocol:
+    """Early stopping without ground truth: held-out views, the stop rule, what is kept."""
     holdout_every: int = STOP_RULE.holdout_every  # hold out every n-th training view; 0: none
     holdout_until: float = 0.667   # ... for this fraction of the iterations (the stop rule
                                    # decides only then), then train on every view; 1: held
@@ -186,7 +190,11 @@ class TrainConfig:
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
                                    # (no effect on training); None: at each held-out
                                    # evaluation
-    # --- bookkeeping
+
+
+@dataclass
+class Run:
+    """When checkpoints are written, and a wall-clock budget for the whole training."""
     checkpoint_every: int | None = None  # iterations between checkpoints; None: a tenth
                                    # of the run, 1 to 500 (trainer.checkpoint_interval), so
                                    # that a short run has them too
@@ -195,50 +203,94 @@ class TrainConfig:
                                    # planned from a probe of this machine's speed instead of
                                    # iteration_rule (mi_grg.training.budget); None: no budget
 
-    def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, float) and not math.isfinite(v):
-                raise ConfigError(f"{f.name} must be finite, got {v}")
-        if self.time_budget is not None:
-            if not self.time_budget > 0:
-                raise ConfigError(f"time_budget must be > 0 seconds (or none: no budget), "
-                                  f"got {self.time_budget!r}")
-            if self.iterations is not None:
-                raise ConfigError(f"time_budget ({self.time_budget:g} s) plans the iteration "
-                                  f"count; iterations={self.iterations} would override it: "
-                                  "give one of them")
-        for name in AUTO_FIELDS:
-            v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ConfigError(f"{name} must be > 0 or none (automatic), got {v!r}; "
-                                  "0 no longer means automatic: write none or leave it out")
-        nonneg = [f.name for f in fields(self) if _base_type(f) in ("int", "float")
-                  and getattr(self, f.name) is not None and getattr(self, f.name) < 0]
-        if nonneg:
-            raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
-        if self.k < 1:
-            raise ConfigError("k must be >= 1")
-        if not 0 < self.lr_final_ratio <= 1:
-            raise ConfigError("lr_final_ratio must be in (0, 1]")
-        if self.n_points < 1:
-            raise ConfigError("n_points must be >= 1")
-        if not 0.0 <= self.holdout_until <= 1.0:
-            raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
-                              f"{self.holdout_until}")
-        if self.init not in INIT_VOLUMES:
-            raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
-                              f"{self.init!r}")
-        if self.keep_state not in KEEP_STATES:
-            raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
-                              f"got {self.keep_state!r}")
-        zero = [n for n in ("eval_every", "densify_interval", "tv_every",
-                            "stop_patience") if getattr(self, n) < 1]
-        if zero:
-            raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+#: TrainConfig's parts: attribute -> part class. Field names are unique across the parts,
+#: so that the flat keys (config files, --option, records) name one field each.
+PARTS = {"schedule": Schedule, "deinit": DeInit, "graph": Graph, "densify": Densification,
+         "losses": Losses, "optim": Optim, "protocol": Protocol, "run": Run}
+
+#: Flat key -> (part attribute, dataclasses.Field), in the order files and records list them.
+_FIELDS = {f.name: (part, f) for part, cls in PARTS.items() for f in fields(cls)}
+
+#: Every flat key (config files, --option, metrics.json and checkpoint records).
+FLAT_KEYS = tuple(_FIELDS)
+
+
+@dataclass
+class TrainConfig:
+    """Every hyperparameter of GR-Gaussian / R2-Gaussian training, in named parts (read
+    as ``cfg.losses.lambda_tv``). Files, options and records spell it flat (``lambda_tv``):
+    ``from_flat`` and ``to_flat`` are the one mapping between the two."""
+
+    schedule: Schedule = field(default_factory=Schedule)
+    deinit: DeInit = field(default_factory=DeInit)
+    graph: Graph = field(default_factory=Graph)
+    densify: Densification = field(default_factory=Densification)
+    losses: Losses = field(default_factory=Losses)
+    optim: Optim = field(default_factory=Optim)
+    protocol: Protocol = field(default_factory=Protocol)
+    run: Run = field(default_factory=Run)
+
+    @classmethod
+    def from_flat(cls, values: dict) -> "TrainConfig":
+        """The config of flat ``{key: value}`` (missing keys take their defaults); an
+        unknown key is a ``ConfigError`` with a suggestion. Values are taken as given
+        (``make_config`` coerces strings)."""
+        parts = {part: {} for part in PARTS}
+        for key, value in values.items():
+            _check_key(key)
+            parts[_FIELDS[key][0]][key] = value
+        return cls(**{part: PARTS[part](**kw) for part, kw in parts.items()})
+
+    def to_flat(self) -> dict:
+        """Every field as flat ``{key: value}``, in ``FLAT_KEYS`` order."""
+        return {key: getattr(getattr(self, part), key) for key, (part, _) in _FIELDS.items()}
+
+    def __post_init__(self):
+        _validate(self.to_flat())
+
+
+def _validate(c: dict) -> None:
+    """The checks of a flat config ``c``; each error names the key."""
+    for key, v in c.items():
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ConfigError(f"{key} must be finite, got {v}")
+    if c["time_budget"] is not None:
+        if not c["time_budget"] > 0:
+            raise ConfigError(f"time_budget must be > 0 seconds (or none: no budget), "
+                              f"got {c['time_budget']!r}")
+        if c["iterations"] is not None:
+            raise ConfigError(f"time_budget ({c['time_budget']:g} s) plans the iteration "
+                              f"count; iterations={c['iterations']} would override it: "
+                              "give one of them")
+    for name in AUTO_FIELDS:
+        v = c[name]
+        if v is not None and not v > 0:
+            raise ConfigError(f"{name} must be > 0 or none (automatic), got {v!r}; "
+                              "0 no longer means automatic: write none or leave it out")
+    nonneg = [k for k, v in c.items() if _base_type(_FIELDS[k][1]) in ("int", "float")
+              and v is not None and v < 0]
+    if nonneg:
+        raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
+    if c["k"] < 1:
+        raise ConfigError("k must be >= 1")
+    if not 0 < c["lr_final_ratio"] <= 1:
+        raise ConfigError("lr_final_ratio must be in (0, 1]")
+    if c["n_points"] < 1:
+        raise ConfigError("n_points must be >= 1")
+    if not 0.0 <= c["holdout_until"] <= 1.0:
+        raise ConfigError(f"holdout_until must be a fraction in [0, 1], got "
+                          f"{c['holdout_until']}")
+    if c["init"] not in INIT_VOLUMES:
+        raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
+                          f"{c['init']!r}")
+    if c["keep_state"] not in KEEP_STATES:
+        raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
+                          f"got {c['keep_state']!r}")
+    zero = [n for n in ("eval_every", "densify_interval", "tv_every",
+                        "stop_patience") if c[n] < 1]
+    if zero:
+        raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 
 
 class ConfigError(ValueError):
@@ -248,16 +300,6 @@ class ConfigError(ValueError):
 def _base_type(f) -> str:
     """A field's type without "| None" ("int", "float", "bool" or "str")."""
     return f.type.replace(" | None", "")
-
-
-def upgrade_config_dict(values: dict) -> dict:
-    """A recorded config (checkpoint, metrics.json) in today's spelling: fields of
-    ``AUTO_FIELDS`` recorded as 0 (automatic, before they became optional) become None."""
-    return {k: (None if k in AUTO_FIELDS and v == 0 and not isinstance(v, bool) else v)
-            for k, v in values.items()}
-
-
-_FIELDS = {f.name: f for f in fields(TrainConfig)}
 _TAG_OF_TYPE = {"int": "integer", "float": "float", "bool": "boolean", "str": "string"}
 _NONE_WORDS = ("none", "null")
 
@@ -271,8 +313,9 @@ def _check_key(key: str) -> None:
 
 def _coerce(key: str, value):
     _check_key(key)
-    kind = _base_type(_FIELDS[key])
-    if "| None" in _FIELDS[key].type and (value is None or (
+    f = _FIELDS[key][1]
+    kind = _base_type(f)
+    if "| None" in f.type and (value is None or (
             isinstance(value, str) and value.strip().lower() in _NONE_WORDS)):
         return None
     try:
@@ -317,9 +360,10 @@ def read_config_xml(path) -> tuple[str | None, dict]:
         if name is None or value is None:
             raise ConfigError(f"{path}: <{el.tag}> needs name and value attributes")
         _check_key(name)
-        want = _TAG_OF_TYPE[_base_type(_FIELDS[name])]
+        kind = _base_type(_FIELDS[name][1])
+        want = _TAG_OF_TYPE[kind]
         if el.tag != want:
-            raise ConfigError(f"{path}: {name} is a {_base_type(_FIELDS[name])}; write <{want} "
+            raise ConfigError(f"{path}: {name} is a {kind}; write <{want} "
                               f"name=\"{name}\" .../>, not <{el.tag}>")
         if name in values:
             raise ConfigError(f"{path}: {name} is given twice")
@@ -332,11 +376,11 @@ def write_config_xml(config: TrainConfig, path, method: str | None = None) -> No
     left automatic is written as value="none"."""
     method_attr = f' method="{method}"' if method else ""
     lines = [f'<training version="1"{method_attr}>']
-    for f in fields(config):
-        v = getattr(config, f.name)
+    for key, v in config.to_flat().items():
         text = ("none" if v is None else str(v).lower() if isinstance(v, bool)
                 else v if isinstance(v, str) else repr(v))
-        lines.append(f'    <{_TAG_OF_TYPE[_base_type(f)]} name="{f.name}" value="{text}"/>')
+        tag = _TAG_OF_TYPE[_base_type(_FIELDS[key][1])]
+        lines.append(f'    <{tag} name="{key}" value="{text}"/>')
     lines.append("</training>\n")
     with open(path, "w") as fh:
         fh.write("\n".join(lines))
@@ -354,95 +398,4 @@ def make_config(method: str = "gr", path=None, **overrides) -> TrainConfig:
         values.update(file_values)
     for key, value in overrides.items():
         values[key] = _coerce(key, value)
-    return TrainConfig(**values)
-
-
-def stale_keys(m: dict) -> list:
-    """Training options of a finished r2/gr run (its metrics.json, read into ``m``) whose
-    recorded values differ from what this code resolves the run's options to (a default
-    changed since it ran; a field in ``ADDED_LATER`` that the record lacks counts as its old
-    value); [] if none differ or the run is not a training run. An iterative classical run
-    (sart, asd-pocs, pdhg) made before held-out stopping was its default returns ["stop"]; a
-    run whose held-out views are not today's ``holdout_split`` (the first split held out 0, 8, 16, ...)
-    adds "held_out_views", and such a classical run decided under another ``stop_noise``
-    adds "stop_noise" (its stop margin; gr / r2: ``_margin_inert``). A gr / r2 run that
-    left ``extent`` or ``iterations`` automatic and resolved them otherwise than this code
-    (``TRAIN_EXTENT``, ``ITERATION_RULE``; the earliest runs record neither) adds
-    "extent" / "iterations"."""
-    if (m.get("method") in ("sart", "asd-pocs", "pdhg")
-            and (m.get("options") or {}).get("stop", "heldout") == "heldout"
-            and (m.get("method_info") or {}).get("protocol") != "heldout"):
-        return ["stop"]     # ran a fixed sweep count before held-out stopping was the default
-    split = ["held_out_views"] if _split_changed(m) else []
-    if m.get("method") in ("sart", "asd-pocs", "pdhg"):
-        rule = (m.get("method_info") or {}).get("stop_rule") or {}
-        if rule and float(rule.get("noise", ADDED_LATER["stop_noise"])) != TrainConfig().stop_noise:
-            split.append("stop_noise")   # decided under another stop margin
-    used = (m.get("method_info") or {}).get("config")
-    if m.get("method") not in PRESETS or not isinstance(used, dict):
-        return split
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    opts = upgrade_config_dict({k: v for k, v in (m.get("options") or {}).items()
-                                if k in names})
-    try:
-        now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_dict()
-    except Exception:  # noqa: BLE001 (an option this code no longer accepts)
-        return ["config"]
-    used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
-    differ = {k for k in set(now) | set(used)
-              if now.get(k) != used.get(k) and k not in BOOKKEEPING}
-    if now.get("holdout_every") == 0 and used.get("holdout_every") == 0:
-        differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
-    if "stop_noise" in differ and _margin_inert(m, used, now):
-        differ.discard("stop_noise")
-    return sorted(differ | _auto_changed(m, used)) + split
-
-
-#: What the automatic extent and iteration count resolved to in the earliest runs (which
-#: do not record it): the projector's 4.5 and 1500 x n / 64 (sqrt below 64).
-_OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
-
-
-def _auto_changed(m: dict, used: dict) -> set:
-    """Automatic fields (None in the run's config) that this code resolves differently
-    from what the run recorded in method_info (``extent``, ``iteration_rule``)."""
-    info = m.get("method_info") or {}
-    out = set()
-    if (used.get("extent") is None
-            and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT):
-        out.add("extent")
-    if used.get("iterations") is None and used.get("time_budget") is None:
-        name = info.get("iteration_rule", _OLD_AUTO["iteration_rule"])
-        rule, nvox = ITERATION_RULES.get(name), m.get("nVoxel")
-        if nvox and rule is not None:     # the count at the run's size decides
-            changed = rule(max(nvox)) != ITERATION_RULES[ITERATION_RULE](max(nvox))
-        else:                             # no size recorded: the rule itself
-            changed = name != ITERATION_RULE
-        if changed:
-            out.add("iterations")
-    return out
-
-
-def _margin_inert(m: dict, used: dict, now: dict) -> bool:
-    """Whether today's larger ``stop_noise`` leaves a finished run as it was: the rule never
-    fired and the run returned its last state, so a wider margin (which can only postpone a
-    stop and only moves the kept state) changes nothing."""
-    views = (m.get("method_info") or {}).get("views") or {}
-    last = (m.get("method_info") or {}).get("iterations_run")
-    return (float(now.get("stop_noise", 0)) >= float(used.get("stop_noise", 0))
-            and "stop" in views and views["stop"] is None
-            and last is not None and views.get("returned_state_iteration") == last)
-
-
-def _split_changed(m: dict) -> bool:
-    """Whether a finished run recorded held-out views other than the ones
-    ``mi_grg.protocol.split.holdout_split`` gives its view count and ``holdout_every`` today."""
-    from mi_grg.protocol.split import holdout_split
-    info = m.get("method_info") or {}
-    held, n = info.get("held_out_views"), m.get("n_train_views")
-    # gr / r2 record their config; the classical methods their stop rule
-    every = (info.get("config") or info.get("stop_rule") or {}).get("holdout_every")
-    if held is None or n is None or every is None:
-        return False
-    return [int(v) for v in held] != holdout_split(int(n), int(every))[1].tolist()
-
+    return TrainConfig.from_flat(values)

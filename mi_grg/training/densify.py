@@ -107,9 +107,10 @@ class DensifyConfig:
         keep their defaults. The schedule and ``max_count`` are the config's as written:
         the trainer scales the window to the run's length and lowers the cap to
         ``mi_grg.training.trainer.gaussian_cap`` (``max_gaussians_per_voxel`` needs the grid)."""
-        return cls(interval=cfg.densify_interval, start=cfg.densify_start,
-                   stop=cfg.densify_stop, tau_pos=cfg.densify_grad_threshold,
-                   lambda_g=cfg.lambda_g, use_graph=cfg.use_pga, max_count=cfg.max_gaussians)
+        return cls(interval=cfg.densify.densify_interval, start=cfg.densify.densify_start,
+                   stop=cfg.densify.densify_stop, tau_pos=cfg.densify.densify_grad_threshold,
+                   lambda_g=cfg.densify.lambda_g, use_graph=cfg.densify.use_pga,
+                   max_count=cfg.densify.max_gaussians)
 
 
 def densify_iterations(start: int, stop: int, interval: int, last: int) -> range:

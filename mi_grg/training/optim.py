@@ -112,9 +112,9 @@ class Adam:
     def from_train_config(cls, cfg, max_steps: int) -> "Adam":
         """From a ``mi_grg.training.config.TrainConfig`` (lr_position, lr_density, lr_scale,
         lr_rotation, lr_final_ratio); ``max_steps``: the decay horizon (iterations)."""
-        return cls(lr={"positions": cfg.lr_position, "raw_densities": cfg.lr_density,
-                       "raw_scales": cfg.lr_scale, "raw_rotations": cfg.lr_rotation},
-                   max_steps=max_steps, final_ratio=cfg.lr_final_ratio)
+        return cls(lr={"positions": cfg.optim.lr_position, "raw_densities": cfg.optim.lr_density,
+                       "raw_scales": cfg.optim.lr_scale, "raw_rotations": cfg.optim.lr_rotation},
+                   max_steps=max_steps, final_ratio=cfg.optim.lr_final_ratio)
 
     # ------------------------------------------------------------------ schedule
     @property

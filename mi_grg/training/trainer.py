@@ -41,8 +41,8 @@ from mi_grg.data.case import Case
 from mi_grg.training.budget import BudgetPlanner, replans_of
 from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
                                         load_checkpoint, save_checkpoint)
-from mi_grg.training.config import (ITERATION_RULE, ITERATION_RULES, TRAIN_EXTENT, TrainConfig,
-                                    make_config)
+from mi_grg.training.config import (ITERATION_RULE, TRAIN_EXTENT, TrainConfig,
+                                    iterations_for_size, make_config)
 from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
 from mi_grg.protocol.early_stop import EarlyStopper
@@ -82,7 +82,7 @@ def iteration_rule(geometry) -> int:
     evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans the
     count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
     """
-    return ITERATION_RULES[ITERATION_RULE](max(geometry.nVoxel))
+    return iterations_for_size(max(geometry.nVoxel))
 
 
 def gaussian_cap(cfg: TrainConfig, geometry) -> int:
@@ -92,10 +92,10 @@ def gaussian_cap(cfg: TrainConfig, geometry) -> int:
     leaves ``max_gaussians`` alone. Below about 46^3 the default 50k De-Init points (capped
     by the candidate voxels) can already reach the cap; densification then only refills
     what pruning removes."""
-    cap = int(cfg.max_gaussians)
-    if cfg.max_gaussians_per_voxel > 0:
+    cap = int(cfg.densify.max_gaussians)
+    if cfg.densify.max_gaussians_per_voxel > 0:
         voxels = int(np.prod(np.asarray(geometry.nVoxel, dtype=np.int64)))
-        cap = min(cap, max(1, math.ceil(cfg.max_gaussians_per_voxel * voxels)))
+        cap = min(cap, max(1, math.ceil(cfg.densify.max_gaussians_per_voxel * voxels)))
     return cap
 
 
@@ -143,10 +143,10 @@ class _DeferredInterrupt:
 def _scaled(cfg: TrainConfig, iterations: int) -> dict:
     """Densification window and eval intervals, scaled from the paper's 30k."""
     f = iterations / 30000.0
-    return {"densify_start": max(1, int(cfg.densify_start * f)),
-            "densify_stop": max(2, int(cfg.densify_stop * f)),
-            "densify_interval": max(1, int(cfg.densify_interval * max(f, 0.25))),
-            "eval_every": max(50, int(cfg.eval_every * max(f, 0.25)))}
+    return {"densify_start": max(1, int(cfg.densify.densify_start * f)),
+            "densify_stop": max(2, int(cfg.densify.densify_stop * f)),
+            "densify_interval": max(1, int(cfg.densify.densify_interval * max(f, 0.25))),
+            "eval_every": max(50, int(cfg.protocol.eval_every * max(f, 0.25)))}
 
 
 def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
@@ -201,27 +201,29 @@ class Trainer:
         # time_budget: planned after De-Init (mi_grg.training.budget); a resumed run
         # continues its recorded plan. Until then the rule's count stands in.
         plan = None
-        if resuming and cfg.time_budget is not None:
+        if resuming and cfg.run.time_budget is not None:
             plan = checkpoint_time_plan(source)
             if plan is None:
                 raise ValueError(f"checkpoint {source} has no time plan to "
                                  "resume with time_budget")
-        self._schedule(cfg.iterations if cfg.iterations is not None else
+        self._schedule(cfg.schedule.iterations if cfg.schedule.iterations is not None else
                        plan["iterations"] if plan else iteration_rule(geo))
         self.fit_idx, self.held_idx = self.views.fit, self.views.held
         self.targets = [mi.TensorXf(np.ascontiguousarray(case.train[i], np.float32))
                         for i in range(geo.n_views)]
-        self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
-        self.extent = cfg.extent if cfg.extent is not None else TRAIN_EXTENT
+        self.uses_graph = (cfg.graph.use_graph_field or cfg.densify.use_pga
+                           or cfg.graph.lambda_lap > 0)
+        self.extent = cfg.schedule.extent if cfg.schedule.extent is not None else TRAIN_EXTENT
         # The TV term is a regulariser on a random block, not a measurement: a shorter
         # support costs a third of the voxel pairs (its field differs from the full one by
         # at most rho exp(-9/2) = 0.011 rho per Gaussian).
-        self.tv_extent = cfg.tv_extent if cfg.tv_extent is not None else self.extent
-        if cfg.monitor_3d and case.vol_gt is None:
+        self.tv_extent = cfg.losses.tv_extent if cfg.losses.tv_extent is not None else self.extent
+        if cfg.protocol.monitor_3d and case.vol_gt is None:
             raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
                              "this case has none (vol_gt.npy); use the held-out views")
-        self.stopper = EarlyStopper(drop=cfg.stop_drop, patience=cfg.stop_patience,
-                                    keep=cfg.keep_state, noise=cfg.stop_noise)
+        self.stopper = EarlyStopper(drop=cfg.protocol.stop_drop,
+                                    patience=cfg.protocol.stop_patience,
+                                    keep=cfg.protocol.keep_state, noise=cfg.protocol.stop_noise)
         self.graph = None
         # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
         # set with the graph: constant until the next rebuild.
@@ -238,14 +240,15 @@ class Trainer:
                 print(f"no checkpoint at {source}; starting from scratch")
             g, self.init_info = self._initial_gaussians()
             self.state = TrainState(iteration=0, raw=g.to_raw(),
-                                    rng=np.random.default_rng(cfg.seed).bit_generator.state)
+                                    rng=np.random.default_rng(
+                                        cfg.schedule.seed).bit_generator.state)
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = self.state.rng
         # Wall clock of the calls this run resumed from (metrics.json's seconds add it).
         self.resumed_seconds = self.state.wall_seconds if resuming else 0.0
         self._wall_start = t_begin - self.resumed_seconds
         self.planner = None
-        if cfg.time_budget is not None:
+        if cfg.run.time_budget is not None:
             self.planner = self._budget_planner()
             if resuming:      # the recorded plan, replayed (another machine would plan otherwise)
                 for r in replans_of(self.planner.plan):
@@ -273,15 +276,16 @@ class Trainer:
         # Views: held out while the stop rule decides, then trained, so that every view
         # counts (docs/benchmarks.md, "Every view counts"); the research rule monitor_3d
         # judges the ground truth, so there the views stay held out.
-        self.views = ViewProtocol(geo.n_views, cfg.holdout_every,
-                                  1.0 if cfg.monitor_3d else cfg.holdout_until,
-                                  self.iterations, sched["eval_every"], cfg.holdout_catch_up)
+        self.views = ViewProtocol(geo.n_views, cfg.protocol.holdout_every,
+                                  1.0 if cfg.protocol.monitor_3d else cfg.protocol.holdout_until,
+                                  self.iterations, sched["eval_every"],
+                                  cfg.protocol.holdout_catch_up)
         # The config's window and cap are the paper's; this run's depend on its length and grid.
         dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
                                    start=sched["densify_start"],
                                    stop=sched["densify_stop"], interval=sched["densify_interval"],
                                    max_count=gaussian_cap(cfg, geo))
-        self.densifier = PGADensifier(dcfg, seed=cfg.seed)
+        self.densifier = PGADensifier(dcfg, seed=cfg.schedule.seed)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
 
     def _budget_planner(self) -> BudgetPlanner:
@@ -289,7 +293,7 @@ class Trainer:
         def window_end(iterations: int, eval_every: int) -> int:
             return dataclasses.replace(self.views, iterations=iterations,
                                        eval_every=eval_every).window_end
-        return BudgetPlanner(self.cfg.time_budget, gaussian_cap(self.cfg, self.case.geometry),
+        return BudgetPlanner(self.cfg.run.time_budget, gaussian_cap(self.cfg, self.case.geometry),
                              lambda iterations: _scaled(self.cfg, iterations), window_end,
                              self._logs_3d, plan=self.state.time_plan)
 
@@ -351,7 +355,7 @@ class Trainer:
         make: one every ``log_3d_every`` (else at every evaluation), one at the end."""
         if self.case.vol_gt is None:
             return 0
-        every = self.cfg.log_3d_every or eval_every
+        every = self.cfg.protocol.log_3d_every or eval_every
         return max(0, iterations // every - after // every) + 1
 
     # ------------------------------------------------------------------ pieces
@@ -359,8 +363,8 @@ class Trainer:
         from mi_grg.training.init import init_gaussians, sigma_d_voxels
         geo, cfg = self.case.geometry, self.cfg
         fit_geo = geo.with_angles(geo.angles[self.fit_idx])
-        info = {"volume": cfg.init}
-        if cfg.init == "pdhg":
+        info = {"volume": cfg.deinit.init}
+        if cfg.deinit.init == "pdhg":
             # the fitted views only: the held-out ones still decide this run's stop
             fitted = Case(geometry=fit_geo, train=self.case.train[self.fit_idx])
             vol, decided = reconstruct_pdhg(fitted, oracle=False, progress=False)
@@ -370,17 +374,18 @@ class Trainer:
             vol = fdk(self.case.train[self.fit_idx], fit_geo)
         # The signed FDK is filtered: clipping first would lift the air's zero-mean noise to
         # a positive mean, and after the filter every voxel of the cube would pass tau.
-        sigma = sigma_d_voxels(cfg.sigma_d, geo.nVoxel, cfg.sigma_d_grid)
+        sigma = sigma_d_voxels(cfg.deinit.sigma_d, geo.nVoxel, cfg.deinit.sigma_d_grid)
         info["sigma_d_voxels"] = sigma
-        g = init_gaussians(vol, geo, n_points=cfg.n_points, tau=cfg.init_tau,
-                           sigma_d=sigma or None, density_rescale=cfg.density_rescale,
-                           seed=cfg.seed, info=info)
-        if cfg.use_graph_field:
+        g = init_gaussians(vol, geo, n_points=cfg.deinit.n_points, tau=cfg.deinit.init_tau,
+                           sigma_d=sigma or None, density_rescale=cfg.deinit.density_rescale,
+                           seed=cfg.schedule.seed, info=info)
+        if cfg.graph.use_graph_field:
             # The graph-augmented field multiplies each kernel's density by 1 + sum_i w_ij
             # (about 1 + k/2 e^-1 .. 1 + k); the init densities were calibrated for the plain
             # field, so divide by that factor: the initial field is the same either way.
             from mi_grg.training.graph import build_graph, graph_density_scale
-            scale = graph_density_scale(build_graph(g.positions, k=cfg.k, s=cfg.graph_s))
+            scale = graph_density_scale(build_graph(g.positions, k=cfg.graph.k,
+                                                    s=cfg.graph.graph_s))
             g = g.replace(densities=g.densities / scale)
             info["graph_field_init_divisor_mean"] = float(dr.mean(scale)[0]
                                                           if dr.width(dr.mean(scale)) else 1.0)
@@ -395,9 +400,9 @@ class Trainer:
             self.graph = None
             return
         p = mi.Point3f(dr.detach(positions))
-        self.graph = build_graph(p, k=self.cfg.k, s=self.cfg.graph_s)
+        self.graph = build_graph(p, k=self.cfg.graph.k, s=self.cfg.graph.graph_s)
         self.state.graph_positions = np.stack([np.asarray(c) for c in p], -1)
-        if self.cfg.use_graph_field:
+        if self.cfg.graph.use_graph_field:
             # constant until the next rebuild: computed once here, not every iteration
             self._density_scale = graph_density_scale(self.graph)
             dr.eval(self._density_scale)
@@ -430,10 +435,10 @@ class Trainer:
         """(Gaussians of ``raw``, their graph-field multiplier or None): ``density_scale`` if
         given, else, with the graph field on, the one of a graph built on these positions."""
         g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
-        if density_scale is None and self.cfg.use_graph_field:
+        if density_scale is None and self.cfg.graph.use_graph_field:
             from mi_grg.training.graph import build_graph, graph_density_scale
-            density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.k,
-                                                            s=self.cfg.graph_s))
+            density_scale = graph_density_scale(build_graph(g.positions, k=self.cfg.graph.k,
+                                                            s=self.cfg.graph.graph_s))
         return g, density_scale
 
     # ------------------------------------------------------------------ the loop
@@ -482,9 +487,9 @@ class Trainer:
                 st.rng = self.rng.bit_generator.state
                 if (self.planner is not None and st.stopped_by is None
                         and self.planner.out_of_time(st.seconds)):
-                    st.stopped_by = (f"time budget ({self.cfg.time_budget:g} s) reached at "
+                    st.stopped_by = (f"time budget ({self.cfg.run.time_budget:g} s) reached at "
                                      f"iteration {it} of {self.iterations} planned")
-                every = checkpoint_interval(self.cfg.checkpoint_every, self.iterations)
+                every = checkpoint_interval(self.cfg.run.checkpoint_every, self.iterations)
                 if it % every == 0 or st.stopped_by is not None or interrupt.requested:
                     self._save_checkpoint()
                 if interrupt.requested:
@@ -511,18 +516,18 @@ class Trainer:
         dr.enable_grad(means2d)
         img = self._project(g, geo.angles[view:view + 1], ds, means2d)
         pred = mi.TensorXf(img.array, (nv, nu))
-        loss = projection_loss(pred, self.targets[view], cfg.lambda_ssim)
-        if cfg.lambda_tv > 0 and it % cfg.tv_every == 0:
+        loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
+        if cfg.losses.lambda_tv > 0 and it % cfg.losses.tv_every == 0:
             nvox = np.asarray(geo.nVoxel)
-            block = np.minimum(cfg.tv_block, nvox)
+            block = np.minimum(cfg.losses.tv_block, nvox)
             start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
             from mi_grg.core.voxelizer import voxelize_dr
             vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
                               density_scale=ds)
-            loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
-        if cfg.lambda_lap > 0 and self.graph is not None:
+            loss = loss + (cfg.losses.lambda_tv * cfg.losses.tv_every) * tv_3d(vol)
+        if cfg.graph.lambda_lap > 0 and self.graph is not None:
             lap = laplacian_loss(self.graph, g.densities, normalise=False)
-            loss = loss + laplacian_weight(cfg.lambda_lap, n) * lap
+            loss = loss + laplacian_weight(cfg.graph.lambda_lap, n) * lap
         dr.backward(loss)
         # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
         # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
@@ -541,10 +546,10 @@ class Trainer:
         from mi_grg.training.graph import mean_abs_density_difference
         cfg = self.cfg
         term = None
-        if cfg.use_pga and self.graph is not None:
+        if cfg.densify.use_pga and self.graph is not None:
             term = mean_abs_density_difference(self.graph,
                                                dr.detach(Gaussians.from_raw(raw).densities))
-        old_scale = self._density_scale if cfg.rebuild_keeps_field else None
+        old_scale = self._density_scale if cfg.graph.rebuild_keeps_field else None
         raw, info = self.densifier.step(it, raw, self.optimizer, graph_term=term,
                                         bbox=self.case.geometry.bbox())
         self._rebuild_graph(raw["positions"])
@@ -563,25 +568,25 @@ class Trainer:
         cfg, st = self.cfg, self.state
         is_eval = it % self.sched["eval_every"] == 0 or it == self.iterations
         want_3d = self.case.vol_gt is not None and (
-            (it % cfg.log_3d_every == 0 if cfg.log_3d_every else is_eval)
-            or (cfg.monitor_3d and is_eval))
+            (it % cfg.protocol.log_3d_every == 0 if cfg.protocol.log_3d_every else is_eval)
+            or (cfg.protocol.monitor_3d and is_eval))
         if want_3d:
             # Research logging: not counted in the training time, except against a time
             # budget, which is wall clock (mi_grg.training.budget prices it)
             t3 = time.perf_counter()
             row["psnr_3d"] = self._psnr_3d(raw)
-            if cfg.time_budget is None:
+            if cfg.run.time_budget is None:
                 self._t_start += time.perf_counter() - t3
         # A held-out view is judged only while none of them has been trained on.
-        if not is_eval or not (cfg.monitor_3d or self.views.decides(it, self._stop)):
+        if not is_eval or not (cfg.protocol.monitor_3d or self.views.decides(it, self._stop)):
             return raw
         row["heldout_psnr"] = self._heldout_psnr(raw)
-        watched = row.get("psnr_3d") if cfg.monitor_3d else row["heldout_psnr"]
+        watched = row.get("psnr_3d") if cfg.protocol.monitor_3d else row["heldout_psnr"]
         # Densification reshapes the model; judge (and keep) states only after it.
         if watched is not None and it < self.sched["densify_stop"]:
             self.stopper.observe(it, watched)     # informs the rule's noise margin only
         elif watched is not None:
-            if cfg.monitor_3d:
+            if cfg.protocol.monitor_3d:
                 self.stopper.label = "3-D PSNR vs ground truth (research option)"
             verdict = self.stopper.update(it, watched)
             if self.stopper.kept_iteration == it:
@@ -627,9 +632,9 @@ class Trainer:
             returned = self.stopper.kept_iteration
         else:
             final, self.final_density_scale = st.raw, self._density_scale
-        if (cfg.refit_iterations and st.kept_raw is not None and "budget" not in st.stopped_by
-                and not joined):
-            final = self._refit(final, cfg.refit_iterations)
+        if (cfg.protocol.refit_iterations and st.kept_raw is not None
+                and "budget" not in st.stopped_by and not joined):
+            final = self._refit(final, cfg.protocol.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
                    "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
@@ -638,7 +643,7 @@ class Trainer:
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds, "schedule": self.sched,
-                   "checkpoint_every": checkpoint_interval(cfg.checkpoint_every,
+                   "checkpoint_every": checkpoint_interval(cfg.run.checkpoint_every,
                                                            self.iterations),
                    # wall clock of the earlier calls of a resumed run, to its checkpoint
                    # (0: not resumed); metrics.json's seconds include it
@@ -648,13 +653,14 @@ class Trainer:
                    "views": self.views.record(st.iteration, stop, self.stopper.history,
                                               self.stopper.reason, returned),
                    # the margin the last decision used (mi_grg.protocol.early_stop)
-                   "stop_margin": {"drop": cfg.stop_drop, "noise": cfg.stop_noise,
+                   "stop_margin": {"drop": cfg.protocol.stop_drop,
+                                   "noise": cfg.protocol.stop_noise,
                                    "scatter_db": self.stopper.scatter(),
                                    "margin_db": (self.stopper.margin()
                                                  if math.isfinite(self.stopper.best)
                                                  else None)},
                    "time_plan": self.time_plan,
-                   # what the automatic fields resolved to (config.stale_keys compares)
+                   # what the automatic fields resolved to (lab.staleness.stale_keys compares)
                    "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
             from mi_grg.data.ply import save_ply
@@ -694,7 +700,7 @@ class Trainer:
             g = Gaussians.from_raw(raw)
             img = self._project(g, geo.angles[view:view + 1], self.final_density_scale)
             pred = mi.TensorXf(img.array, (nv, nu))
-            loss = projection_loss(pred, self.targets[view], cfg.lambda_ssim)
+            loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
             dr.backward(loss)
             raw = self.optimizer.step(raw)
         return raw
@@ -707,7 +713,7 @@ def _train_method(method: str):
         cfg = make_config(method, config, **overrides)
         trainer = Trainer(case, cfg, out_dir=out_dir, progress=progress, resume=resume)
         summary = trainer.run()
-        summary["config"] = cfg.to_dict()
+        summary["config"] = cfg.to_flat()
         return trainer.volume(), summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "
