@@ -90,9 +90,13 @@ def lane_base(vbase, rec):
 class _RegularLane:
     """Row constants of regular (record, row) lanes and the closed form at one pixel."""
 
-    def __init__(self, det, prep_arrays, vbase, rec, row):
+    def __init__(self, det, prep_arrays, vbase, rec, row, valid=None):
         params, footprint, packed = prep_arrays
+        if valid is not None:    # capacity lanes past the last row: row 0, no pixel
+            row = dr.select(valid, row, 0)
         t, v, dv, lo, hi = lane_values(det, params, footprint, packed, rec, row)
+        if valid is not None:
+            lo, hi = dr.select(valid, lo, 0), dr.select(valid, hi, -1)
         self.t, self.v, self.dv, self.lo, self.hi = t, v, dv, lo, hi
         self.uc, self.N11, self.N21, self.N22, self.amp = (t["uc"], t["N11"], t["N21"],
                                                            t["N22"], t["amp"])
@@ -131,15 +135,17 @@ class _RegularLane:
         return du, y1, num, None, None, None, m2, base0
 
 
-def regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None, tan=None):
+def regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None, tan=None,
+                   valid=None):
     """One lane per (record, detector row); loops over the row's footprint pixels.
 
     ``prep_arrays`` = (params, footprint, packed) of the records. Mode
     ``dr.ADMode.Primal``: add the values into ``image`` (rows ``det.stride`` apart; on LLVM
     ``lanes.PACKET`` pixels per store); ``Backward``: return the gradient of <image, gimage>
     w.r.t. the 11 (6 parallel) record parameters per lane; ``Forward``: scatter-add the
-    tangent given the parameter tangents ``tan``."""
-    lane = _RegularLane(det, prep_arrays, vbase, rec, row)
+    tangent given the parameter tangents ``tan``. ``valid`` (mi.Bool, optional) marks
+    the lanes that hold a row; the others add nothing."""
+    lane = _RegularLane(det, prep_arrays, vbase, rec, row, valid)
     if mode == dr.ADMode.Forward:
         return _regular_forward(det, lane, rec, image, tan)
     if mode == dr.ADMode.Primal and lanes.use_packets():

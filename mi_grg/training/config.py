@@ -194,6 +194,10 @@ class TrainConfig:
                                    # returned state): the iteration count and schedule are
                                    # planned from a probe of this machine's speed instead of
                                    # iteration_rule (mi_grg.training.budget); None: no budget
+    frozen_step: bool = False      # record the iterations without TV block once with
+                                   # dr.freeze and replay them (no Python tracing per
+                                   # iteration; mi_grg.training.frozen_step): the same
+                                   # results, less host time
 
     def __post_init__(self):
         for f in fields(self):

@@ -225,6 +225,10 @@ class Trainer:
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
         self._stop = None     # where the stop rule fired (views.Stop), set by run()
+        self.frozen = None
+        if cfg.frozen_step:
+            from mi_grg.training.frozen_step import FrozenStep
+            self.frozen = FrozenStep(geo, self.extent, cfg.lambda_ssim)
         if resuming:
             self.state = load_checkpoint(self.checkpoint_path, self.optimizer, self.densifier,
                                          self.stopper, cfg)
@@ -500,6 +504,10 @@ class Trainer:
         nv, nu = geo.nDetector
         weights = self.views.draw_weights(it, self._stop)
         view = int(self.rng.choice(self.views.train_views(it, self._stop), p=weights))
+        if self.frozen is not None and not (cfg.lambda_tv > 0 and it % cfg.tv_every == 0):
+            done = self.frozen.iteration(self, it, raw, view, laplacian_weight)
+            if done is not None:
+                return done
         g = Gaussians.from_raw(raw)
         ds = self._density_scale
         n = len(g)
