@@ -135,6 +135,9 @@ class FrozenStep:
         """The recorded computation on this state: {loss, grads, gnorm, counts} (lazy
         outputs of the replay) and the key it ran under."""
         n = dr.width(raw["raw_densities"])
+        if graph is not None:
+            from mi_grg.training.graph import neighbour_table
+            neighbour_table(graph)       # its host read, once per graph, outside
         key = (n, self.rows_capacity(n), None if graph is None else
                (graph.n, graph.num_edges, graph.table[0] if graph.table else None))
         inputs = {"raw": {k: dr.detach(v) for k, v in raw.items()},
@@ -174,8 +177,6 @@ class FrozenStep:
             return None
         lap_weight = None
         if trainer.cfg.lambda_lap > 0 and trainer.graph is not None:
-            from mi_grg.training.graph import neighbour_table
-            neighbour_table(trainer.graph)       # its host read, once per graph
             lap_weight = laplacian_weight(trainer.cfg.lambda_lap, n)
         graph = trainer.graph if lap_weight is not None else None
         out, key = self.run(raw, view, trainer.targets[view], graph,
