@@ -15,7 +15,8 @@ from mi_grg.data.simulate import default_geometry, default_test_angles, simulate
 from mi_grg.training.config import make_config
 from mi_grg.training.frozen_step import FrozenStep
 from mi_grg.training.graph import laplacian_loss
-from mi_grg.training.losses import projection_loss
+from mi_grg.core.voxelizer import voxelize_dr
+from mi_grg.training.losses import projection_loss, tv_3d
 from mi_grg.training.trainer import Trainer, laplacian_weight
 
 TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=20,
@@ -37,8 +38,9 @@ def one_thread():
     dr.set_thread_count(threads)
 
 
-def _traced(tr, raw, view):
-    """The trainer's traced step (projection, loss, Laplacian, backward): loss, gradients."""
+def _traced(tr, raw, view, start=None):
+    """The trainer's traced step (projection, loss, TV block at ``start``, Laplacian,
+    backward): loss, gradients."""
     geo, cfg = tr.case.geometry, tr.cfg
     nv, nu = geo.nDetector
     g = Gaussians.from_raw(raw)
@@ -46,6 +48,11 @@ def _traced(tr, raw, view):
     dr.enable_grad(means2d)
     img = tr._project(g, geo.angles[view:view + 1], tr._density_scale, means2d)
     loss = projection_loss(mi.TensorXf(img.array, (nv, nu)), tr.targets[view], cfg.lambda_ssim)
+    if start is not None:
+        block = np.minimum(cfg.tv_block, np.asarray(geo.nVoxel)).tolist()
+        vol = voxelize_dr(g, geo, block=(start, block), extent=tr.tv_extent,
+                          density_scale=tr._density_scale)
+        loss = loss + (cfg.lambda_tv * cfg.tv_every) * tv_3d(vol)
     lap = laplacian_loss(tr.graph, g.densities, normalise=False)
     loss = loss + laplacian_weight(cfg.lambda_lap, len(g)) * lap
     dr.backward(loss)
@@ -55,31 +62,60 @@ def _traced(tr, raw, view):
     return float(loss[0]), grads
 
 
-def test_frozen_step_equals_traced_and_re_records_on_overflow(tiny_case):
-    cfg = make_config("gr", iterations=30, **TINY)
-    tr = Trainer(tiny_case, cfg, progress=False)
+def _state(case, **kw):
+    """A fresh trainer's state (raw with gradients, graph) and a FrozenStep logging to a
+    list."""
+    cfg = make_config("gr", iterations=30, **TINY, **kw)
+    tr = Trainer(case, cfg, progress=False)
     raw = {k: dr.detach(v) for k, v in tr.state.raw.items()}
     for v in raw.values():
         dr.enable_grad(v)
     tr._rebuild_graph(raw["positions"])
     said = []
-    fz = FrozenStep(tiny_case.geometry, tr.extent, cfg.lambda_ssim, log=said.append)
+    fz = FrozenStep(case.geometry, tr.extent, cfg.lambda_ssim, log=said.append,
+                    tv=(cfg.lambda_tv * cfg.tv_every, np.minimum(cfg.tv_block,
+                                                                 case.geometry.nVoxel),
+                        tr.tv_extent))
+    return tr, raw, fz, said
+
+
+def _frozen_calls(tr, raw, fz, calls):
     n = dr.width(raw["raw_densities"])
-    fz.rows_per_gaussian = 0.5          # far too few rows: the first call overflows
-    results = []
-    for view in (0, 0, 3, 1):
-        out, key = fz.run(raw, view, tr.targets[view], tr.graph, tr._density_scale,
-                          laplacian_weight(cfg.lambda_lap, n))
-        results.append((view, fz.check(out, key), out, key))
-    assert results[0][1] is None and all(r[1] is not None for r in results[1:])
-    assert len(said) == 1 and "exceed the recorded capacity" in said[0]
-    assert fz.fn.n_recordings == 2      # the overflow's and one more, replayed twice
-    for view, loss, out, key in results[1:]:
-        ref_loss, ref = _traced(tr, raw, view)
+    out = []
+    for view, start in calls:
+        res, key = fz.run(raw, view, tr.targets[view], tr.graph, tr._density_scale,
+                          laplacian_weight(tr.cfg.lambda_lap, n), start)
+        out.append((view, start, fz.check(res, key), res))
+    return out
+
+
+def _assert_equal(tr, raw, results):
+    for view, start, loss, out in results:
+        ref_loss, ref = _traced(tr, raw, view, start)
         assert loss == pytest.approx(ref_loss, rel=1e-6)
         for k, g in ref.items():
             err = np.abs(np.asarray(out["grads"][k]) - g).max() / np.abs(g).max()
-            assert err < 1e-5, (view, k, err)
+            assert err < 1e-5, (view, start, k, err)
+
+
+def test_frozen_step_equals_traced_and_re_records_on_overflow(tiny_case, one_thread):
+    tr, raw, fz, said = _state(tiny_case)
+    fz.per_gaussian["rows"] = 0.5       # far too few rows: the first call overflows
+    results = _frozen_calls(tr, raw, fz, [(0, None), (0, None), (3, None), (1, None)])
+    assert results[0][2] is None and all(r[2] is not None for r in results[1:])
+    assert len(said) == 1 and "past the recorded capacity" in said[0]
+    assert fz.n_recordings == 2         # the overflow's and one more, replayed twice
+    _assert_equal(tr, raw, results[1:])
+
+
+def test_frozen_tv_iteration_equals_traced(tiny_case, one_thread):
+    tr, raw, fz, said = _state(tiny_case, tv_block=8)
+    fz.per_gaussian.update(cols=0.1, slices=0.1)     # the first TV call overflows
+    results = _frozen_calls(tr, raw, fz, [(2, [4, 0, 8]), (2, [4, 0, 8]), (5, [0, 8, 3]),
+                                          (4, None)])
+    assert results[0][2] is None and all(r[2] is not None for r in results[1:])
+    assert fz.fn[True].n_recordings == 2 and fz.fn[False].n_recordings == 1
+    _assert_equal(tr, raw, results[1:])
 
 
 def _run(case, out_dir, frozen, crash=None, crash_after=None, resume=False, **kw):
@@ -103,8 +139,8 @@ def test_densification_re_records_and_the_run_matches_the_traced_one(tiny_case, 
     frozen = _run(tiny_case, tmp_path / "f", frozen=True)
     ns = {r["n_gaussians"] for r in frozen.state.log}
     assert len(ns) >= 2                                  # densification happened
-    assert frozen.frozen.fn.n_recordings >= len(ns)      # one recording per N at least
-    assert frozen.frozen.replays >= 20
+    assert frozen.frozen.n_recordings >= len(ns)      # one recording per N at least
+    assert frozen.frozen.replays >= 40 and frozen.frozen.fn[True].n_recordings >= 1
     assert [r["n_gaussians"] for r in frozen.state.log] == \
         [r["n_gaussians"] for r in traced.state.log]
     np.testing.assert_allclose([r["loss"] for r in frozen.state.log],

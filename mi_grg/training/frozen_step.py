@@ -2,24 +2,27 @@
 replayed: no Python tracing, no host read inside it.
 
 What is recorded: Gaussians.from_raw -> the projection of one view (with means2d) -> L1 +
-D-SSIM -> the graph Laplacian -> backward -> the raw gradients and the densification
-statistics' per-Gaussian gradient norms. What stays outside (``Trainer._step``): the draws,
-the statistics' accumulation, the loss read (the one host synchronisation of an
-iteration, as on the traced path), Adam, and the iterations with a TV block, which run
-traced (the voxelizer plans its pairs on the host).
+D-SSIM -> TV on the iteration's block (every ``tv_every``-th iteration; a recording of its
+own) -> the graph Laplacian -> backward -> the raw gradients and the densification
+statistics' per-Gaussian gradient norms. What stays outside (``Trainer._step``): the draws
+(view, block corner), the statistics' accumulation, the loss read (the one host
+synchronisation of an iteration, as on the traced path), Adam, evaluation, logging,
+densification and graph rebuilds.
 
-The traced projector reads data-dependent sizes on the host (the footprint rows of the
-regular records, the near-source records); a recording cannot. Here they are capacities
-fixed when the step is recorded (``RowCapacity``): ``rows`` (record, row) lanes, the rows
-past the last record's masked, and no near-source lanes. The counts come back with the
-result; a count past its capacity (more rows, or a near-source record) discards the
-result, the iteration runs traced, the capacity grows and the next call records anew.
-Each kind of event is said once (``notes``). A recording is keyed by the Gaussian count,
-the graph's sizes and the capacity: densification and graph rebuilds record anew.
+The traced step reads data-dependent sizes on the host (the projector's footprint rows and
+near-source records, the voxelizer's pair plan); a recording cannot. Here they are
+capacities fixed when the step is recorded: ``rows`` (record, row) lanes and no
+near-source lanes for the projection (``RowCapacity``), ``cols`` column and ``slices``
+slice lanes for the TV block (``voxelizer.capacity_plan``); lanes past the counts are
+masked. The counts come back with the result; a count past its capacity (or a
+near-source record) discards the result, the iteration runs traced, the capacity grows and
+the next call records anew. Each kind of event is said once (``FrozenStep.note``).
+Recordings are keyed by the Gaussian count, the graph's sizes and the capacities:
+densification and graph rebuilds record anew.
 
 Exact: the recorded step evaluates the same expressions as the traced one; only the lane
-count differs (masked lanes add zeros). See docs/frozen_step.md for the host reads of the
-traced step and where each went.
+counts differ (masked lanes add zeros). docs/frozen_step.md lists the traced step's host
+reads and where each went.
 """
 from __future__ import annotations
 
@@ -30,25 +33,38 @@ import mitsuba as mi
 import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
+from mi_grg.core.voxelizer import voxelize_block_capacity
 from mi_grg.core.projector import _ProjectionSetup, _ProjectOp
 from mi_grg.core.projector_chunks import RowCapacity
 from mi_grg.core.projector_records import DetectorConstants, ViewFrameArrays
 from mi_grg.core.view_frames import view_frames
 
-# Headroom of the row capacity over the most rows per Gaussian seen so far (the rows of
-# a view vary with the view), and its granularity (so that small changes keep a recording)
-ROW_HEADROOM = 1.25
-ROW_QUANTUM = 4096
-INITIAL_ROWS_PER_GAUSSIAN = 4.0
+# Headroom of a capacity over the most lanes per Gaussian seen so far (the rows vary with
+# the view, the pairs with the block), and its granularity (so that small changes keep a
+# recording)
+HEADROOM = 1.25
+QUANTUM = 4096
+# Lanes per Gaussian before any count was seen (an overflow then sets the real one)
+INITIAL_PER_GAUSSIAN = {"rows": 4.0, "cols": 2.0, "slices": 1.0}
 
 
 class _Static:
     """The step's Python constants (not a PyTree: the frozen function hashes it by id)."""
 
-    def __init__(self, geometry, extent, lambda_ssim):
+    def __init__(self, geometry, extent, lambda_ssim, tv):
         self.geometry, self.extent, self.lambda_ssim = geometry, float(extent), lambda_ssim
         self.frames = view_frames(geometry)
         self.nv, self.nu = geometry.nDetector
+        # (weight lambda_tv x tv_every, block size [3], support) or None
+        self.tv = None if tv is None else (tv[0], tuple(int(x) for x in tv[1]), float(tv[2]))
+
+
+class _PairCapacity:
+    """The TV block's column and slice lanes; the plan leaves the totals it needed."""
+
+    def __init__(self, cols: int, slices: int):
+        self.cols, self.slices = int(cols), int(slices)
+        self.cols_total = self.slices_total = None
 
 
 def _frame_arrays(frames) -> dict:
@@ -70,8 +86,18 @@ def _setup(static: _Static, inputs: dict, n: int, rows: int) -> _ProjectionSetup
     return setup
 
 
+def _tv_term(static: _Static, inputs: dict, g: Gaussians, pairs: _PairCapacity):
+    """The weighted TV of the block at ``inputs["tv_start"]``, as Trainer._step has it."""
+    from mi_grg.training.losses import tv_3d
+    weight, size, support = static.tv
+    vol = voxelize_block_capacity(g, static.geometry, inputs["tv_start"], size, support,
+                                  inputs["ds"], pairs)
+    return weight * tv_3d(vol)
+
+
 def _step_body(static: _Static, inputs: dict, key: tuple) -> dict:
-    """The recorded iteration (``key`` = (N, row capacity, graph sizes) keys recordings)."""
+    """The recorded iteration; ``key`` = (N, rows, graph sizes, (cols, slices) or None)
+    keys the recordings (the capacities become the lane counts)."""
     from mi_grg.training.graph import laplacian_loss
     from mi_grg.training.losses import projection_loss
     raw = {}
@@ -79,24 +105,29 @@ def _step_body(static: _Static, inputs: dict, key: tuple) -> dict:
         raw[k] = type(v)(dr.detach(v))
         dr.enable_grad(raw[k])
     g = Gaussians.from_raw(raw)
-    n = len(g)
-    means2d = dr.zeros(mi.Vector2f, n)
+    means2d = dr.zeros(mi.Vector2f, len(g))
     dr.enable_grad(means2d)
     setup = _setup(static, inputs, len(g), key[1])
     img = dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
                     inputs["ds"], means2d, setup)
-    pred = mi.TensorXf(img, (static.nv, static.nu))
-    loss = projection_loss(pred, inputs["target"], static.lambda_ssim)
+    loss = projection_loss(mi.TensorXf(img, (static.nv, static.nu)), inputs["target"],
+                           static.lambda_ssim)
+    pairs = None
+    if key[3] is not None:
+        pairs = _PairCapacity(*key[3])
+        loss = loss + _tv_term(static, inputs, g, pairs)
     if inputs["graph"] is not None:
         lap = laplacian_loss(inputs["graph"], g.densities, normalise=False)
         loss = loss + inputs["lap_weight"] * lap
     dr.backward(loss)
     grad2d = dr.grad(means2d)
     gnorm = dr.norm(mi.Vector2f(grad2d.x * (static.nu / 2.0), grad2d.y * (static.nv / 2.0)))
-    grads = {k: dr.grad(v) for k, v in raw.items()}
-    caps = setup.caps
-    out = {"loss": dr.detach(loss), "grads": grads, "gnorm": gnorm,
-           "counts": [mi.UInt32(caps.rows_total), mi.UInt32(caps.near_count)]}
+    U = mi.UInt32
+    counts = [setup.caps.rows_total, setup.caps.near_count]
+    counts += ([pairs.cols_total, pairs.slices_total] if pairs is not None
+               else [dr.zeros(U, 1), dr.zeros(U, 1)])
+    out = {"loss": dr.detach(loss), "grads": {k: dr.grad(v) for k, v in raw.items()},
+           "gnorm": gnorm, "counts": [U(c) for c in counts]}
     dr.eval(out)
     return out
 
@@ -104,18 +135,26 @@ def _step_body(static: _Static, inputs: dict, key: tuple) -> dict:
 class FrozenStep:
     """The recorded training iteration of a ``Trainer`` (see the module docstring).
 
-    ``iteration(trainer, it, raw, view)`` runs one iteration without TV block and returns
-    (new raw, loss value), or None when this iteration must run traced (the caller then
-    runs its own step: nothing of the recorded run is kept)."""
+    ``iteration(trainer, it, raw, view, start, laplacian_weight)`` returns (new raw, loss
+    value), or None when this iteration must run traced (the caller then runs its own
+    step: nothing of the recorded run is kept). ``tv``: (weight, block size, support) of
+    the TV term, or None."""
 
-    def __init__(self, geometry, extent, lambda_ssim, log=print):
-        self.static = _Static(geometry, extent, lambda_ssim)
+    def __init__(self, geometry, extent, lambda_ssim, tv=None, log=print):
+        self.static = _Static(geometry, extent, lambda_ssim, tv)
         self.frames = _frame_arrays(self.static.frames)
-        self.fn = dr.freeze(_step_body, limit=1, warn_after=1 << 30)
-        self.rows_per_gaussian = INITIAL_ROWS_PER_GAUSSIAN
-        self.capacity = None        # (N, rows) of the current recording
+        # one recording per kind of iteration (with and without TV block), replaced when
+        # its key changes; re-recording after a densification is expected, not a warning
+        self.fn = {False: dr.freeze(_step_body, limit=1, warn_after=1 << 30),
+                   True: dr.freeze(_step_body, limit=1, warn_after=1 << 30)}
+        self.per_gaussian = dict(INITIAL_PER_GAUSSIAN)
+        self.capacity = {}          # kind -> (N, lanes) of the current recordings
         self.log, self.said = log, set()
         self.replays = self.fallbacks = 0
+
+    @property
+    def n_recordings(self) -> int:
+        return sum(f.n_recordings for f in self.fn.values())
 
     def note(self, kind: str, text: str) -> None:
         """Say ``text`` once per kind of event (overflows are expected after growth)."""
@@ -123,56 +162,70 @@ class FrozenStep:
             self.said.add(kind)
             self.log(f"frozen step: {text}")
 
-    def rows_capacity(self, n: int) -> int:
-        """Row lanes for N Gaussians: the most rows per Gaussian seen, with headroom."""
-        if self.capacity is not None and self.capacity[0] == n:
-            return self.capacity[1]
-        rows = math.ceil(self.rows_per_gaussian * ROW_HEADROOM * max(n, 1) / ROW_QUANTUM)
-        self.capacity = (n, rows * ROW_QUANTUM)
-        return self.capacity[1]
+    def lanes(self, kind: str, n: int) -> int:
+        """Lanes of ``kind`` for N Gaussians: the most per Gaussian seen, with headroom."""
+        cap = self.capacity.get(kind)
+        if cap is None or cap[0] != n:
+            q = math.ceil(self.per_gaussian[kind] * HEADROOM * max(n, 1) / QUANTUM)
+            cap = self.capacity[kind] = (n, q * QUANTUM)
+        return cap[1]
 
-    def run(self, raw: dict, view: int, target, graph, density_scale, lap_weight):
-        """The recorded computation on this state: {loss, grads, gnorm, counts} (lazy
-        outputs of the replay) and the key it ran under."""
+    def run(self, raw: dict, view: int, target, graph, density_scale, lap_weight,
+            start=None):
+        """The recorded computation on this state (lazy outputs of the replay: loss,
+        grads, gnorm, counts) and the key it ran under. ``start``: the TV block's corner
+        (None: no TV)."""
         n = dr.width(raw["raw_densities"])
         if graph is not None:
             from mi_grg.training.graph import neighbour_table
             neighbour_table(graph)       # its host read, once per graph, outside
-        key = (n, self.rows_capacity(n), None if graph is None else
-               (graph.n, graph.num_edges, graph.table[0] if graph.table else None))
+        tv = start is not None
+        key = (n, self.lanes("rows", n), None if graph is None else
+               (graph.n, graph.num_edges, graph.table[0]),
+               (self.lanes("cols", n), self.lanes("slices", n)) if tv else None)
         inputs = {"raw": {k: dr.detach(v) for k, v in raw.items()},
                   "view": dr.opaque(mi.UInt32, view), "target": target,
                   "frames": self.frames, "ds": density_scale,
-                  "graph": graph, "lap_weight": lap_weight if graph is not None else None}
-        return self.fn(self.static, inputs, key), key
+                  "graph": graph, "lap_weight": lap_weight if graph is not None else None,
+                  "tv_start": [dr.opaque(mi.Int32, int(s)) for s in start] if tv else None}
+        return self.fn[tv](self.static, inputs, key), key
 
     def check(self, out: dict, key: tuple) -> float | None:
-        """The loss value, or None (the result is incomplete: the capacity grows, said once)."""
-        vals = np.concatenate([np.asarray(out["loss"], np.float64).reshape(-1)[:1]]
-                              + [np.asarray(c, np.float64).reshape(-1)[:1]
-                                 for c in out["counts"]])
-        loss, rows, near = float(vals[0]), int(vals[1]), int(vals[2])
-        n, cap = key[0], key[1]
-        self.rows_per_gaussian = max(self.rows_per_gaussian, rows / max(n, 1))
+        """The loss value, or None: the result is incomplete (said once per kind); the
+        capacity that overflowed grows for the next call."""
+        vals = [np.asarray(out["loss"], np.float64).reshape(-1)[0]]
+        vals += [int(np.asarray(c).reshape(-1)[0]) for c in out["counts"]]
+        loss, rows, near, cols, slices = vals
+        n = key[0]
+        caps = {"rows": (rows, key[1])}
+        if key[3] is not None:
+            caps.update(cols=(cols, key[3][0]), slices=(slices, key[3][1]))
+        over = []
+        for kind, (count, lanes) in caps.items():
+            self.per_gaussian[kind] = max(self.per_gaussian[kind], count / max(n, 1))
+            if count > lanes:
+                over.append(f"{count} {kind} > {lanes}")
+                self.capacity.pop(kind, None)      # the next call records with room
         if near:
             self.note("near", "a Gaussian near the source needs the whole-detector lanes, "
                       "which a recording does not hold: such iterations run traced")
             return None
-        if rows > cap:
-            self.capacity = None        # the next call records with room for these rows
-            self.note("rows", f"{rows} footprint rows exceed the recorded capacity {cap}: "
-                      "this iteration runs traced, the next records a larger capacity")
+        if over:
+            self.note("overflow", "lanes past the recorded capacity (" + ", ".join(over)
+                      + "): the iteration runs traced and the next records a larger "
+                      "capacity (said once)")
             return None
-        return loss
+        return float(loss)
 
-    def iteration(self, trainer, it: int, raw: dict, view: int, laplacian_weight):
-        """One iteration of ``trainer`` (no TV block this iteration): (new raw, loss
-        value), or None (run it traced). ``laplacian_weight(lambda_lap, n)``: the
-        trainer's weight of the Laplacian term."""
+    def iteration(self, trainer, it: int, raw: dict, view: int, start, laplacian_weight):
+        """One iteration of ``trainer``: (new raw, loss value), or None (run it traced).
+        ``start``: the TV block's corner or None; ``laplacian_weight(lambda_lap, n)``:
+        the trainer's weight of the Laplacian term."""
         from mi_grg.core.projector import RECORDS_PER_CHUNK
         n = dr.width(raw["raw_densities"])
-        if n == 0 or n > RECORDS_PER_CHUNK:
-            self.note("chunks", f"{n} Gaussians do not fit one projector chunk: traced")
+        if n == 0 or n > RECORDS_PER_CHUNK or (start is not None and self.static.tv is None):
+            self.note("chunks", f"{n} Gaussians (or a TV block without its settings): "
+                      "not recordable, traced")
             self.fallbacks += 1
             return None
         lap_weight = None
@@ -180,7 +233,7 @@ class FrozenStep:
             lap_weight = laplacian_weight(trainer.cfg.lambda_lap, n)
         graph = trainer.graph if lap_weight is not None else None
         out, key = self.run(raw, view, trainer.targets[view], graph,
-                            trainer._density_scale, lap_weight)
+                            trainer._density_scale, lap_weight, start)
         loss_value = self.check(out, key)
         if loss_value is None:
             self.fallbacks += 1
