@@ -32,7 +32,7 @@ AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
 
 #: Fields that cannot change a run's result (when its checkpoints are written): a resume
 #: may change them, and a finished run is not stale for them (``stale_keys``).
-BOOKKEEPING = ("checkpoint_every",)
+BOOKKEEPING = ("checkpoint_every", "frozen_step")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
@@ -46,7 +46,8 @@ PRESETS = {
 # made with this value (stale_keys). A field added with a default
 # that CHANGES behaviour must not be listed, so that such runs count as stale.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
-               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
+               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk",
+               "frozen_step": False}
 
 #: The volumes De-Init can start from (``TrainConfig.init``).
 INIT_VOLUMES = ("fdk", "pdhg")
