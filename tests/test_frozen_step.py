@@ -118,11 +118,21 @@ def test_frozen_tv_iteration_equals_traced(tiny_case, one_thread):
     _assert_equal(tr, raw, results[1:])
 
 
-def _run(case, out_dir, frozen, crash=None, crash_after=None, resume=False, **kw):
+def _run(case, out_dir, frozen, crash=None, resume=False, **kw):
+    """A 60-iteration gr run; ``crash``: interrupted in the iteration after that many."""
     cfg = make_config("gr", iterations=60, seed=5, frozen_step=frozen, **TINY, **kw)
     tr = Trainer(case, cfg, out_dir=out_dir, progress=False, resume=resume)
     if crash is not None:
-        crash_after(tr, crash)
+        step, calls = tr._step, [0]
+
+        def crashing_step(*a):
+            calls[0] += 1
+            if calls[0] > crash:
+                raise KeyboardInterrupt
+            return step(*a)
+        tr._step = crashing_step
+        with pytest.raises(KeyboardInterrupt):
+            tr.run()
         return tr
     tr.run()
     return tr
@@ -151,9 +161,10 @@ def test_densification_re_records_and_the_run_matches_the_traced_one(tiny_case, 
 
 
 def test_resumed_frozen_run_replays_like_the_uninterrupted_one(tiny_case, tmp_path,
-                                                               crash_after, one_thread):
-    full = _run(tiny_case, tmp_path / "full", frozen=True)
-    _run(tiny_case, tmp_path / "cut", frozen=True, crash=40, crash_after=crash_after)
+                                                               one_thread):
+    """Cut at 40 (checkpoint at 40), resumed frozen: as the uninterrupted traced run."""
+    full = _run(tiny_case, tmp_path / "full", frozen=False)
+    _run(tiny_case, tmp_path / "cut", frozen=True, crash=40)
     resumed = _run(tiny_case, tmp_path / "cut", frozen=True, resume=True)
     assert resumed.frozen.replays > 0
     assert resumed.state.iteration == full.state.iteration

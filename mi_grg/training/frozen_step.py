@@ -34,6 +34,8 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.voxelizer import voxelize_block_capacity
+from mi_grg.training.densify import add_one_view
+from mi_grg.training.optim import adam_update
 from mi_grg.core.projector import _ProjectionSetup, _ProjectOp
 from mi_grg.core.projector_chunks import RowCapacity
 from mi_grg.core.projector_records import DetectorConstants, ViewFrameArrays
@@ -126,10 +128,33 @@ def _step_body(static: _Static, inputs: dict, key: tuple) -> dict:
     counts = [setup.caps.rows_total, setup.caps.near_count]
     counts += ([pairs.cols_total, pairs.slices_total] if pairs is not None
                else [dr.zeros(U, 1), dr.zeros(U, 1)])
-    out = {"loss": dr.detach(loss), "grads": {k: dr.grad(v) for k, v in raw.items()},
-           "gnorm": gnorm, "counts": [U(c) for c in counts]}
+    grads = {k: dr.grad(v) for k, v in raw.items()}
+    dr.eval(grads, gnorm)        # every group's gradient in one kernel (evaluate_gradients)
+    out = {"loss": dr.detach(loss), "grads": grads, "gnorm": gnorm,
+           "counts": [U(c) for c in counts]}
+    _update_body(inputs, key, out)
     dr.eval(out)
     return out
+
+
+def _update_body(inputs: dict, key: tuple, out: dict) -> None:
+    """The densification statistics and Adam, recorded too when given (``inputs["stats"]``,
+    ``inputs["adam"]``; betas and eps in ``key[4]``): the same functions as
+    ``PGADensifier.accumulate`` and ``Adam.step`` use. Results go into ``out``."""
+    stats, adam = inputs["stats"], inputs["adam"]
+    if stats is not None:
+        g = dr.detach(out["gnorm"])
+        out["stats"] = add_one_view(stats["grad_accum"], stats["view_count"], g, g > 0)
+    if adam is None:
+        return
+    betas, eps = key[4]
+    out["raw"], out["m"], out["v"] = {}, {}, {}
+    for name, p in inputs["raw"].items():
+        new, m, v = adam_update(p, dr.detach(out["grads"][name]), adam["m"][name],
+                                adam["v"][name], betas, eps, adam["step_size"][name],
+                                adam["inv_bc2"][name])
+        dr.eval(new, m, v)       # one kernel per group, as Adam.step
+        out["raw"][name], out["m"][name], out["v"][name] = new, m, v
 
 
 class FrozenStep:
@@ -171,10 +196,10 @@ class FrozenStep:
         return cap[1]
 
     def run(self, raw: dict, view: int, target, graph, density_scale, lap_weight,
-            start=None):
+            start=None, update=None):
         """The recorded computation on this state (lazy outputs of the replay: loss,
-        grads, gnorm, counts) and the key it ran under. ``start``: the TV block's corner
-        (None: no TV)."""
+        grads, gnorm, counts; with ``update`` (``_update_inputs``) also stats, raw, m, v)
+        and the key it ran under. ``start``: the TV block's corner (None: no TV)."""
         n = dr.width(raw["raw_densities"])
         if graph is not None:
             from mi_grg.training.graph import neighbour_table
@@ -182,12 +207,15 @@ class FrozenStep:
         tv = start is not None
         key = (n, self.lanes("rows", n), None if graph is None else
                (graph.n, graph.num_edges, graph.table[0]),
-               (self.lanes("cols", n), self.lanes("slices", n)) if tv else None)
+               (self.lanes("cols", n), self.lanes("slices", n)) if tv else None,
+               update[1] if update is not None else None)
         inputs = {"raw": {k: dr.detach(v) for k, v in raw.items()},
                   "view": dr.opaque(mi.UInt32, view), "target": target,
                   "frames": self.frames, "ds": density_scale,
                   "graph": graph, "lap_weight": lap_weight if graph is not None else None,
-                  "tv_start": [dr.opaque(mi.Int32, int(s)) for s in start] if tv else None}
+                  "tv_start": [dr.opaque(mi.Int32, int(s)) for s in start] if tv else None,
+                  "stats": update[0]["stats"] if update is not None else None,
+                  "adam": update[0]["adam"] if update is not None else None}
         return self.fn[tv](self.static, inputs, key), key
 
     def check(self, out: dict, key: tuple) -> float | None:
@@ -232,14 +260,52 @@ class FrozenStep:
         if trainer.cfg.lambda_lap > 0 and trainer.graph is not None:
             lap_weight = laplacian_weight(trainer.cfg.lambda_lap, n)
         graph = trainer.graph if lap_weight is not None else None
+        update = _update_inputs(trainer, raw, n)
         out, key = self.run(raw, view, trainer.targets[view], graph,
-                            trainer._density_scale, lap_weight, start)
+                            trainer._density_scale, lap_weight, start, update)
         loss_value = self.check(out, key)
         if loss_value is None:
             self.fallbacks += 1
             return None
         self.replays += 1
-        trainer.densifier.accumulate(out["gnorm"], visible=out["gnorm"] > 0)
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
-        return trainer.optimizer.step(raw, grads=out["grads"]), loss_value
+        return _commit(trainer, raw, out, update), loss_value
+
+
+def _update_inputs(trainer, raw: dict, n: int):
+    """(inputs, key part) of the statistics and Adam for a recording, or None where they
+    stay traced: Adam's per-step finite check (a host read), or a state that does not
+    match N (the traced calls then raise their errors)."""
+    opt, dens = trainer.optimizer, trainer.densifier
+    if dens.size is None:
+        dens.reset(n)             # as accumulate does on its first call
+    if opt.check_finite or dens.size != n or set(raw) - set(opt.lr0):
+        return None
+    states = {name: opt.group_state(name, p) for name, p in raw.items()}
+    if any(dr.width(st.m) != n for st in states.values()):
+        return None
+    scalars = {name: opt.step_scalars(name, st.step + 1) for name, st in states.items()}
+    adam = {"m": {k: st.m for k, st in states.items()},
+            "v": {k: st.v for k, st in states.items()},
+            "step_size": {k: dr.opaque(mi.Float, a) for k, (a, _) in scalars.items()},
+            "inv_bc2": {k: dr.opaque(mi.Float, b) for k, (_, b) in scalars.items()}}
+    stats = {"grad_accum": dens.grad_accum, "view_count": dens.view_count}
+    return {"stats": stats, "adam": adam}, (opt.betas, opt.eps)
+
+
+def _commit(trainer, raw: dict, out: dict, update) -> dict:
+    """Apply a checked replay: the statistics and Adam's state (recorded), or run them
+    traced (``update`` None). Returns the new raw parameters."""
+    if update is None:
+        trainer.densifier.accumulate(out["gnorm"], visible=out["gnorm"] > 0)
+        return trainer.optimizer.step(raw, grads=out["grads"])
+    trainer.densifier.grad_accum, trainer.densifier.view_count = out["stats"]
+    new = {}
+    for name in raw:
+        st = trainer.optimizer.state[name]
+        st.step += 1
+        st.m, st.v = out["m"][name], out["v"][name]
+        new[name] = out["raw"][name]
+        dr.enable_grad(new[name])
+    return new
