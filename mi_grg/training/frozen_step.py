@@ -3,10 +3,11 @@ replayed: no Python tracing, no host read inside it.
 
 What is recorded: Gaussians.from_raw -> the projection of one view (with means2d) -> L1 +
 D-SSIM -> TV on the iteration's block (every ``tv_every``-th iteration; a recording of its
-own) -> the graph Laplacian -> backward -> the raw gradients and the densification
-statistics' per-Gaussian gradient norms. What stays outside (``Trainer._step``): the draws
-(view, block corner), the statistics' accumulation, the loss read (the one host
-synchronisation of an iteration, as on the traced path), Adam, evaluation, logging,
+own) -> the graph Laplacian -> backward -> the densification statistics -> Adam (the
+moments and new parameters are outputs, applied once the replay is checked; Adam stays
+traced when it checks gradients for NaN on every step). What stays outside
+(``Trainer._step``): the draws (view, block corner), the loss read (the one host
+synchronisation of an iteration, as on the traced path), evaluation, logging,
 densification and graph rebuilds.
 
 The traced step reads data-dependent sizes on the host (the projector's footprint rows and
