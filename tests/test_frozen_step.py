@@ -171,3 +171,19 @@ def test_resumed_frozen_run_replays_like_the_uninterrupted_one(tiny_case, tmp_pa
     a, b = _raw(resumed), _raw(full)
     for k in a:
         assert np.abs(a[k] - b[k]).max() <= 1e-5 * np.abs(b[k]).max(), k
+
+
+def test_near_source_records_grow_their_capacity_and_match_traced(tiny_case, one_thread):
+    """Two wide Gaussians (scale 0.8, the source 5 away) need the half-line form in every
+    view: the first call has no near-source slot (overflow), the next records them."""
+    tr, raw, fz, said = _state(tiny_case)
+    s = np.stack([np.asarray(c) for c in raw["raw_scales"]], -1)
+    s[:2] = np.log(0.8)
+    raw["raw_scales"] = mi.Vector3f(*[mi.Float(np.ascontiguousarray(s[:, i])) for i in range(3)])
+    dr.enable_grad(raw["raw_scales"])
+    fz.per_gaussian["rows"] = 40.0      # rows never overflow here: only the near slots
+    results = _frozen_calls(tr, raw, fz, [(1, None), (1, None), (4, None)])
+    assert [int(np.asarray(r[3]["counts"][1])[0]) for r in results] == [2, 2, 2]
+    assert results[0][2] is None and all(r[2] is not None for r in results[1:])
+    assert len(said) == 1 and "near" in said[0]
+    _assert_equal(tr, raw, results[1:])

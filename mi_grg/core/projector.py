@@ -202,12 +202,15 @@ class _ProjectOp(dr.CustomOp):
             dr.eval(params)
         tan = tangent_src(prep, "near") if mode == dr.ADMode.Forward else None
         vbase = view_base(prep.near_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
-        n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
-        row_lo = dr.zeros(mi.Int32, prep.n_near)
+        if prep.caps is not None:     # a recorded step: device lanes, empty slots masked
+            batches = prep.near_lanes(det.nv_py)
+        else:
+            n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
+            batches = expand_rows(n_rows, dr.zeros(mi.Int32, prep.n_near), ROWS_PER_BATCH)
         return _sweep_rows(
-            mode, expand_rows(n_rows, row_lo, ROWS_PER_BATCH), image, params, prep.n_near,
-            lambda rec, row: near_kernel(mode, det, params, vbase, rec, row, image, gimage,
-                                         tan))
+            mode, batches, image, params, prep.n_near,
+            lambda rec, row, valid=None: near_kernel(mode, det, params, vbase, rec, row, image,
+                                                     gimage, tan, valid))
 
     def _leaves(self):
         """Fresh differentiable copies of the inputs (for AD inside backward/forward)."""

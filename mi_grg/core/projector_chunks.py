@@ -76,8 +76,6 @@ class PreparedChunk:
             raise ValueError("a row capacity needs one view and every Gaussian in one chunk")
         gi = None if identity else g0 + dr.tile(dr.arange(U, ngc), nvc)
         vi = v0 + dr.repeat(dr.arange(U, nvc), ngc)
-        if caps is not None:     # the view's frame is picked on the device, not baked in
-            vi = caps.view + dr.zeros(U, ngc)
         dr.eval(vi)   # keeps the sizes (literals) out of the big kernels below
         if gi is not None:
             dr.eval(gi)
@@ -110,11 +108,7 @@ class PreparedChunk:
                                   for k, v in footprint.items()}
                 self.packed = pack_records(det, self.params, self.footprint)
             if caps is not None:
-                # no near-source lanes in a recorded step: a record needing one is an
-                # overflow the caller sees in caps.near_count
-                caps.near_count = dr.sum(U(near)) if det.cone else dr.zeros(U, 1)
-                dr.eval(caps.near_count)
-                self.near_ids = U()
+                self.near_ids = self._capacity_near(near if det.cone else None, ngc)
             elif det.cone:
                 self.near_ids = dr.compress(near)
             else:
@@ -131,7 +125,7 @@ class PreparedChunk:
         if self.reg_gi is not None:
             dr.eval(self.reg_gi)
         self.n_reg = ngc if identity else dr.width(self.reg_ids)
-        self.n_near = dr.width(self.near_ids)
+        self.n_near = dr.width(self.near_ids)   # a recorded step's: its capacity
         self._batches = None
 
     def row_batches(self, rows_per_batch: int):
@@ -160,6 +154,37 @@ class PreparedChunk:
         return expand_rows(n_rows.numpy(), self.footprint["row_lo"], rows_per_batch)
 
 
+    def _capacity_near(self, near, n: int):
+        """The near-source records packed into ``caps.near`` slots (Gaussian 0 in the
+        slots past their count, masked by ``near_valid``); their count stays on the
+        device (``caps.near_count``): past the capacity, records are missing."""
+        U, caps = mi.UInt32, self.caps
+        if near is None:
+            caps.near_count = dr.zeros(U, 1)
+            dr.eval(caps.near_count)
+            return U()
+        flag = U(near)
+        caps.near_count = dr.sum(flag)
+        if not caps.near:
+            dr.eval(caps.near_count)
+            return U()
+        pos = dr.prefix_sum(flag)
+        ids = dr.zeros(U, caps.near)
+        dr.scatter(ids, dr.arange(U, n), pos, active=near & (pos < caps.near))
+        self.near_valid = dr.arange(U, caps.near) < caps.near_count
+        dr.eval(ids, self.near_valid, caps.near_count)
+        return ids
+
+    def near_lanes(self, nv: int):
+        """(rec, row, valid): every detector row of each near slot (a recorded step's)."""
+        U = mi.UInt32
+        lane = dr.arange(U, self.caps.near * nv)
+        rec = lane // nv
+        row = mi.Int32(lane - rec * nv)
+        valid = dr.gather(mi.Bool, self.near_valid, rec)
+        dr.eval(rec, row, valid)
+        return [(rec, row, valid)]
+
     def _capacity_lanes(self, n_rows, capacity: int):
         """(rec, row, valid) for ``capacity`` lanes: the first sum(n_rows) are the records'
         rows, the rest invalid (their records' last segment is exhausted there). The row
@@ -175,13 +200,12 @@ class PreparedChunk:
 
 
 class RowCapacity:
-    """What a recorded training step fixes in advance: the view (an opaque mi.UInt32 [1],
-    indexing the frames of every view), the (record, row) lanes of the regular records
-    and no near-source lanes. The chunk leaves the counts it needed (mi.UInt32 [1], on
-    the device) in ``rows_total`` and ``near_count``."""
+    """What a recorded training step fixes in advance: the (record, row) lanes of the
+    regular records and the near-source record slots. The chunk leaves the counts it
+    needed (mi.UInt32 [1], on the device) in ``rows_total`` and ``near_count``."""
 
-    def __init__(self, view, rows: int):
-        self.view, self.rows = view, int(rows)
+    def __init__(self, rows: int, near: int):
+        self.rows, self.near = int(rows), int(near)
         self.rows_total = self.near_count = None
 
 

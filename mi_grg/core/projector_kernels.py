@@ -307,8 +307,10 @@ class _NearLane:
     """Row constants of near-source (record, row) lanes and the exact half-line form
     rho sqrt(2 pi / a) exp(-m^2/2) Phi(s) at one pixel."""
 
-    def __init__(self, det, params, vbase, rec, row):
+    def __init__(self, det, params, vbase, rec, row, valid=None):
         F = mi.Float
+        # the row's last pixel; -1 (no pixel) for a recorded step's empty slots
+        self.last = det.nu - 1 if valid is None else dr.select(valid, det.nu - 1, -1)
         gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
         t = {k: gather(params[k]) for k in NEAR_PARAMS}
         self.M = [[t[f"M{l}{k}"] for k in range(3)] for l in range(3)]
@@ -356,10 +358,12 @@ class _NearLane:
         return gD, gg, base0 * Phi
 
 
-def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None):
+def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None,
+                valid=None):
     """One lane per (near record, detector row) over the whole row; exact half-line form.
-    Modes as in ``regular_kernel`` (13 record parameters, ``NEAR_PARAMS``)."""
-    lane = _NearLane(det, params, vbase, rec, row)
+    Modes as in ``regular_kernel`` (13 record parameters, ``NEAR_PARAMS``); lanes not
+    ``valid`` (mi.Bool, optional) add nothing."""
+    lane = _NearLane(det, params, vbase, rec, row, valid)
     if mode == dr.ADMode.Primal:
         return _near_primal(det, lane, image)
     if mode == dr.ADMode.Forward:
@@ -368,7 +372,7 @@ def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None
 
 
 def _near_primal(det, lane, image):
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     smode = scatter_mode()
 
     def body(j):
@@ -381,7 +385,7 @@ def _near_primal(det, lane, image):
 
 def _near_forward(det, lane, rec, image, tan):
     tt = {k: dr.gather(mi.Float, tan[k], rec) for k in NEAR_PARAMS}
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     smode = scatter_mode()
 
     def body(j):
@@ -398,7 +402,7 @@ def _near_forward(det, lane, rec, image, tan):
 
 def _near_backward(det, lane, gimage):
     F = mi.Float
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     zero = F(0)
 
     def body(j, *acc):

@@ -12,12 +12,12 @@ densification and graph rebuilds.
 
 The traced step reads data-dependent sizes on the host (the projector's footprint rows and
 near-source records, the voxelizer's pair plan); a recording cannot. Here they are
-capacities fixed when the step is recorded: ``rows`` (record, row) lanes and no
-near-source lanes for the projection (``RowCapacity``), ``cols`` column and ``slices``
-slice lanes for the TV block (``voxelizer.capacity_plan``); lanes past the counts are
-masked. The counts come back with the result; a count past its capacity (or a
-near-source record) discards the result, the iteration runs traced, the capacity grows and
-the next call records anew. Each kind of event is said once (``FrozenStep.note``).
+capacities fixed when the step is recorded: ``rows`` (record, row) lanes and ``near``
+near-source record slots (none until one is seen) for the projection (``RowCapacity``),
+``cols`` column and ``slices`` slice lanes for the TV block
+(``voxelizer.capacity_plan``); lanes past the counts are masked. The counts come back
+with the result; a count past its capacity discards the result, the iteration runs
+traced, the capacity grows and the next call records anew. Each kind of event is said once (``FrozenStep.note``).
 Recordings are keyed by the Gaussian count, the graph's sizes and the capacities:
 densification and graph rebuilds record anew.
 
@@ -46,9 +46,10 @@ from mi_grg.core.view_frames import view_frames
 # the view, the pairs with the block), and its granularity (so that small changes keep a
 # recording)
 HEADROOM = 1.25
-QUANTUM = 4096
-# Lanes per Gaussian before any count was seen (an overflow then sets the real one)
-INITIAL_PER_GAUSSIAN = {"rows": 4.0, "cols": 2.0, "slices": 1.0}
+QUANTUM = {"rows": 4096, "cols": 4096, "slices": 4096, "near": 16}
+# Lanes (near: records) per Gaussian before any count was seen (an overflow then sets
+# the real one); near-source records are rare: none until one is seen
+INITIAL_PER_GAUSSIAN = {"rows": 4.0, "cols": 2.0, "slices": 1.0, "near": 0.0}
 
 
 class _Static:
@@ -56,8 +57,8 @@ class _Static:
 
     def __init__(self, geometry, extent, lambda_ssim, tv):
         self.geometry, self.extent, self.lambda_ssim = geometry, float(extent), lambda_ssim
-        self.frames = view_frames(geometry)
         self.nv, self.nu = geometry.nDetector
+        self.frames = view_frames(geometry.with_angles(geometry.angles[:1]))
         # (weight lambda_tv x tv_every, block size [3], support) or None
         self.tv = None if tv is None else (tv[0], tuple(int(x) for x in tv[1]), float(tv[2]))
 
@@ -70,22 +71,37 @@ class _PairCapacity:
         self.cols_total = self.slices_total = None
 
 
-def _frame_arrays(frames) -> dict:
-    """Every view's frame vectors (ViewFrameArrays) as a PyTree, an input of the step."""
-    fa = ViewFrameArrays(frames)
-    dr.eval(fa.e, fa.o)
-    return {"e": fa.e, "o": fa.o}
+def _owned(x):
+    """A copy of ``x`` in Dr.Jit's own memory: arrays made from NumPy may map host memory,
+    whose alignment (part of a recording's key) varies from array to array."""
+    y = dr.empty(type(x), dr.width(x))
+    dr.scatter(y, x, dr.arange(mi.UInt32, dr.width(x)))
+    dr.eval(y)
+    return y
 
 
-def _setup(static: _Static, inputs: dict, n: int, rows: int) -> _ProjectionSetup:
-    """project_dr's setup of view ``inputs["view"]`` with a row capacity: the frames of
-    every view come in as an input, and project_dr's input checks (host reads) are left
-    out (the loss read and Adam's gradient check stay outside)."""
+def _view_inputs(geometry) -> list:
+    """Per view, the frame arrays project_dr builds for that view alone (a PyTree): an
+    input of the step, so that one recording serves every view. (The detector constants
+    are the same for every view, ``view_frames`` checks it: they are built inside, as
+    width-1 inputs would make a recording depend on their addresses' alignment.)"""
+    out = []
+    for v in range(geometry.n_views):
+        fa = ViewFrameArrays(view_frames(geometry.with_angles(geometry.angles[v:v + 1])))
+        out.append({"e": [[_owned(c) for c in axis] for axis in fa.e],
+                    "o": [_owned(c) for c in fa.o]})
+    return out
+
+
+def _setup(static: _Static, inputs: dict, n: int, caps: tuple) -> _ProjectionSetup:
+    """project_dr's setup of the drawn view with capacities ``caps`` (rows, near
+    records), the view's frame arrays from the inputs; project_dr's input checks (host
+    reads) are left out (the loss read stays outside)."""
     fa = object.__new__(ViewFrameArrays)
-    fa.e, fa.o = inputs["frames"]["e"], inputs["frames"]["o"]
+    fa.e, fa.o = inputs["view"]["e"], inputs["view"]["o"]
     det = DetectorConstants(static.frames, static.geometry, static.extent)
     setup = _ProjectionSetup(static.geometry, fa, det, n, 1)
-    setup.caps = RowCapacity(inputs["view"], rows)
+    setup.caps = RowCapacity(*caps)
     return setup
 
 
@@ -99,8 +115,9 @@ def _tv_term(static: _Static, inputs: dict, g: Gaussians, pairs: _PairCapacity):
 
 
 def _step_body(static: _Static, inputs: dict, key: tuple) -> dict:
-    """The recorded iteration; ``key`` = (N, rows, graph sizes, (cols, slices) or None)
-    keys the recordings (the capacities become the lane counts)."""
+    """The recorded iteration; ``key`` = (N, (rows, near records), graph sizes, (cols,
+    slices) or None, Adam's (betas, eps) or None) keys the recordings (the capacities
+    become the lane counts)."""
     from mi_grg.training.graph import laplacian_loss
     from mi_grg.training.losses import projection_loss
     raw = {}
@@ -168,7 +185,8 @@ class FrozenStep:
 
     def __init__(self, geometry, extent, lambda_ssim, tv=None, log=print):
         self.static = _Static(geometry, extent, lambda_ssim, tv)
-        self.frames = _frame_arrays(self.static.frames)
+        self.views = _view_inputs(geometry)
+        self.targets = {}
         # one recording per kind of iteration (with and without TV block), replaced when
         # its key changes; re-recording after a densification is expected, not a warning
         self.fn = {False: dr.freeze(_step_body, limit=1, warn_after=1 << 30),
@@ -188,12 +206,21 @@ class FrozenStep:
             self.said.add(kind)
             self.log(f"frozen step: {text}")
 
+    def _target(self, view: int, target):
+        """The view's target image in Dr.Jit's own memory (see ``_owned``), kept."""
+        kept = self.targets.get(view)
+        if kept is None or kept[0] is not target:
+            kept = self.targets[view] = (target, mi.TensorXf(_owned(target.array),
+                                                             target.shape))
+        return kept[1]
+
     def lanes(self, kind: str, n: int) -> int:
         """Lanes of ``kind`` for N Gaussians: the most per Gaussian seen, with headroom."""
         cap = self.capacity.get(kind)
         if cap is None or cap[0] != n:
-            q = math.ceil(self.per_gaussian[kind] * HEADROOM * max(n, 1) / QUANTUM)
-            cap = self.capacity[kind] = (n, q * QUANTUM)
+            quantum = QUANTUM[kind]
+            q = math.ceil(self.per_gaussian[kind] * HEADROOM * max(n, 1) / quantum)
+            cap = self.capacity[kind] = (n, q * quantum)
         return cap[1]
 
     def run(self, raw: dict, view: int, target, graph, density_scale, lap_weight,
@@ -206,13 +233,13 @@ class FrozenStep:
             from mi_grg.training.graph import neighbour_table
             neighbour_table(graph)       # its host read, once per graph, outside
         tv = start is not None
-        key = (n, self.lanes("rows", n), None if graph is None else
+        key = (n, (self.lanes("rows", n), self.lanes("near", n)), None if graph is None else
                (graph.n, graph.num_edges, graph.table[0]),
                (self.lanes("cols", n), self.lanes("slices", n)) if tv else None,
                update[1] if update is not None else None)
         inputs = {"raw": {k: dr.detach(v) for k, v in raw.items()},
-                  "view": dr.opaque(mi.UInt32, view), "target": target,
-                  "frames": self.frames, "ds": density_scale,
+                  "view": self.views[view], "target": self._target(view, target),
+                  "ds": density_scale,
                   "graph": graph, "lap_weight": lap_weight if graph is not None else None,
                   "tv_start": [dr.opaque(mi.Int32, int(s)) for s in start] if tv else None,
                   "stats": update[0]["stats"] if update is not None else None,
@@ -226,7 +253,7 @@ class FrozenStep:
         vals += [int(np.asarray(c).reshape(-1)[0]) for c in out["counts"]]
         loss, rows, near, cols, slices = vals
         n = key[0]
-        caps = {"rows": (rows, key[1])}
+        caps = {"rows": (rows, key[1][0]), "near": (near, key[1][1])}
         if key[3] is not None:
             caps.update(cols=(cols, key[3][0]), slices=(slices, key[3][1]))
         over = []
@@ -235,10 +262,6 @@ class FrozenStep:
             if count > lanes:
                 over.append(f"{count} {kind} > {lanes}")
                 self.capacity.pop(kind, None)      # the next call records with room
-        if near:
-            self.note("near", "a Gaussian near the source needs the whole-detector lanes, "
-                      "which a recording does not hold: such iterations run traced")
-            return None
         if over:
             self.note("overflow", "lanes past the recorded capacity (" + ", ".join(over)
                       + "): the iteration runs traced and the next records a larger "
