@@ -153,7 +153,6 @@ class PreparedChunk:
             return self._batches
         return expand_rows(n_rows.numpy(), self.footprint["row_lo"], rows_per_batch)
 
-
     def _capacity_near(self, near, n: int):
         """The near-source records packed into ``caps.near`` slots (Gaussian 0 in the
         slots past their count, masked by ``near_valid``); their count stays on the

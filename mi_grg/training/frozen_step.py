@@ -34,13 +34,13 @@ import mitsuba as mi
 import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
-from mi_grg.core.voxelizer import voxelize_block_capacity
-from mi_grg.training.densify import add_one_view
-from mi_grg.training.optim import adam_update
 from mi_grg.core.projector import _ProjectionSetup, _ProjectOp
 from mi_grg.core.projector_chunks import RowCapacity
 from mi_grg.core.projector_records import DetectorConstants, ViewFrameArrays
 from mi_grg.core.view_frames import view_frames
+from mi_grg.core.voxelizer import voxelize_block_capacity
+from mi_grg.training.densify import add_one_view
+from mi_grg.training.optim import adam_update
 
 # Headroom of a capacity over the most lanes per Gaussian seen so far (the rows vary with
 # the view, the pairs with the block), and its granularity (so that small changes keep a
