@@ -4,6 +4,8 @@
     .venv/bin/python bench/train_step.py --sizes 64 128 --before 42a14d5
     .venv/bin/python bench/train_step.py --quick              # smoke run
     .venv/bin/python bench/train_step.py --variant cuda_ad_mono --before none   # on a GPU
+    .venv/bin/python bench/train_step.py --frozen --methods gr        # frozen vs traced
+    .venv/bin/python bench/train_step.py --frozen --methods gr --variant cuda_ad_mono
 
 State: a seeded 64^3 (or 128^3) Shepp-Logan case, 25 noisy views of 1.5 n pixels
 (bench/reconstruct.py's cells), trained with the method's defaults for ``--train-iters``
@@ -41,6 +43,16 @@ parameter of one fixed iteration (view 3, fixed TV block); the harness reports t
 difference between "before" and "after" relative to each gradient's largest entry.
 
 Writes docs/bench/train_step.{md,json} (with os.getloadavg() before and after each process).
+
+``--frozen``: the recorded step (``TrainConfig.frozen_step``, mi_grg.training.frozen_step)
+against the traced one, in one process per (method, size, round) on the same state: after
+a warm-up (compilation, the recordings and their capacities), ``--blocks`` alternations of
+``--iters`` traced pairs and ``--iters`` frozen pairs (iterations as Trainer.run composes
+them, Adam included, kernel history on); per block the median wall time per iteration and
+its time outside kernels, and per alternation the frozen / traced ratios; the table gives
+the medians. Iterations the frozen step hands back to the traced path (a capacity
+overflow) are counted. Equality: loss and gradients of one fixed iteration (view 3, fixed
+TV block) by both paths. Writes docs/bench/train_step_frozen{,_cuda}.{md,json}.
 """
 from __future__ import annotations
 
@@ -382,6 +394,190 @@ def worker(method: str, n: int, iters: int, out: str) -> None:
     Path(out).write_text(json.dumps(res))
 
 
+# ====================================================================== frozen vs traced
+def _frozen_adapter(step):
+    """A FrozenStep for ``step`` (the attributes FrozenStep.iteration reads of a Trainer)."""
+    import numpy as np
+    from mi_grg.training.frozen_step import FrozenStep
+    cfg = step.cfg
+    step._density_scale, step.said = step.ds, []
+    return FrozenStep(step.geo, step.extent, cfg.lambda_ssim, log=step.said.append,
+                      tv=(cfg.lambda_tv * cfg.tv_every,
+                          np.minimum(cfg.tv_block, np.asarray(step.geo.nVoxel)),
+                          step.tv_extent))
+
+
+def _frozen_run(step, fz, it):
+    """One iteration by the frozen step (traced where it hands it back): 1 if replayed."""
+    from mi_grg.training.trainer import laplacian_weight
+    view, start = step.draw(it)
+    done = fz.iteration(step, it, step.raw, view, start, laplacian_weight)
+    if done is None:
+        step.run(view, start)
+        return 0
+    step.raw = done[0]
+    return 1
+
+
+def _timed_pairs(run_one, iters):
+    """(wall per iteration, kernels per iteration, launches) of ``iters`` pairs."""
+    import drjit as dr
+    walls, kernels, launches = [], [], []
+    for _ in range(iters):
+        dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        for it in (0, 1):
+            run_one(it)
+        dr.sync_thread()
+        walls.append((time.perf_counter() - t0) / 2)
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        hist = dr.kernel_history()
+        kernels.append(sum(h.get("execution_time", 0.0) for h in hist) / 2e3)
+        launches.append(len(hist) / 2)
+    med = statistics.median
+    return {"wall_s": med(walls), "kernel_s": med(kernels),
+            "outside_s": med(w - k for w, k in zip(walls, kernels)), "launches": med(launches)}
+
+
+def _frozen_equality(step, fz) -> dict:
+    """Largest difference of loss and gradients, frozen vs traced, on one fixed iteration
+    (relative to the loss / each gradient's largest entry)."""
+    import numpy as np
+    import drjit as dr
+    from mi_grg.training.trainer import laplacian_weight
+    start = None
+    if step.cfg.lambda_tv > 0:
+        start = [int(min(s // 3, s - b)) for s, b in zip(step.geo.nVoxel, step.block)]
+    loss, grads = step.run(3, start, update=False)
+    for v in step.raw.values():
+        dr.clear_grad(v)
+    n = dr.width(step.raw["raw_densities"])
+    for _ in range(3):          # the first calls may overflow their capacity and re-record
+        out, key = fz.run(step.raw, 3, step.targets[3], step.graph, step.ds,
+                          laplacian_weight(step.cfg.lambda_lap, n), start)
+        floss = fz.check(out, key)
+        if floss is not None:
+            break
+    res = {"loss_rel": abs(floss - loss) / max(abs(loss), 1e-30)}
+    for k, g in grads.items():
+        a, b = np.asarray(g, np.float64), np.asarray(out["grads"][k], np.float64)
+        res[k] = float(np.abs(a - b).max() / max(np.abs(a).max(), 1e-30))
+    return res
+
+
+def frozen_worker(method: str, n: int, iters: int, blocks: int, out: str) -> None:
+    import mi_grg  # noqa: F401  (first: picks Dr.Jit's LLVM library and the variant)
+    import drjit as dr
+    load0 = os.getloadavg()
+    step = _Step(method, n)
+    fz = _frozen_adapter(step)
+    res = {"method": method, "n": n, "n_gaussians": dr.width(step.raw["raw_densities"]),
+           "equality": _frozen_equality(step, fz)}
+    for it in range(8):         # warm-up: compilation, recordings, capacities
+        step.run(*step.draw(it))
+        _frozen_run(step, fz, it)
+    res["recordings_warmup"] = fz.n_recordings
+    replayed = [0]
+
+    def frozen_one(it):
+        replayed[0] += _frozen_run(step, fz, it)
+    res["blocks"] = []
+    for _ in range(blocks):
+        traced = _timed_pairs(lambda it: step.run(*step.draw(it)), iters)
+        frozen = _timed_pairs(frozen_one, iters)
+        res["blocks"].append({"traced": traced, "frozen": frozen})
+    res["replayed"], res["iterations_frozen"] = replayed[0], 2 * iters * blocks
+    res["recordings"], res["notes"] = fz.n_recordings, step.said
+    res["loadavg_before"], res["loadavg_after"] = load0, os.getloadavg()
+    Path(out).write_text(json.dumps(res))
+
+
+def _frozen_cell(runs: list) -> dict:
+    med = statistics.median
+    cell = {"method": runs[0]["method"], "n": runs[0]["n"],
+            "n_gaussians": runs[0]["n_gaussians"], "runs": runs}
+    blocks = [b for r in runs for b in r["blocks"]]
+    for mode in ("traced", "frozen"):
+        cell[mode] = {k: med(b[mode][k] for b in blocks)
+                      for k in ("wall_s", "kernel_s", "outside_s", "launches")}
+    cell["ratio_wall"] = med(b["frozen"]["wall_s"] / b["traced"]["wall_s"] for b in blocks)
+    cell["ratio_outside"] = med(b["frozen"]["outside_s"] / max(b["traced"]["outside_s"], 1e-9)
+                                for b in blocks)
+    cell["replayed"] = sum(r["replayed"] for r in runs)
+    cell["iterations_frozen"] = sum(r["iterations_frozen"] for r in runs)
+    cell["equality"] = {k: max(r["equality"][k] for r in runs) for k in runs[0]["equality"]}
+    return cell
+
+
+def _frozen_markdown(meta, cells) -> str:
+    ms = lambda s: f"{1e3 * s:.1f}"  # noqa: E731
+    lines = ["# The recorded (frozen) training step against the traced one "
+             "(`bench/train_step.py --frozen`)", "",
+             f"{meta['date']}, {meta['cpus']} CPUs ({meta['machine']}), {meta['variant']}, "
+             f"code `{meta['after']}`. {meta['rounds']} process(es) per cell, each "
+             f"alternating {meta['blocks']} blocks of {meta['iters']} traced and "
+             f"{meta['iters']} frozen iteration pairs (medians over the blocks; a ratio is "
+             "taken within each alternation, then its median). An iteration as Trainer.run "
+             "composes it (view, TV block every tv_every-th iteration, Laplacian, "
+             "backward, statistics, Adam), on the late-training state of the "
+             "train_step bench. Load = os.getloadavg() (1 min) at each process's start.", ""]
+    for c in cells:
+        t, f = c["traced"], c["frozen"]
+        lines += [f"## {c['method']} at {c['n']}^3 ({c['n_gaussians']} Gaussians)", "",
+                  "| per iteration | traced | frozen | frozen / traced |", "|---|---|---|---|",
+                  f"| wall, ms | {ms(t['wall_s'])} | {ms(f['wall_s'])} | {c['ratio_wall']:.2f} |",
+                  f"| inside kernels, ms | {ms(t['kernel_s'])} | {ms(f['kernel_s'])} | |",
+                  f"| outside kernels (tracing, launches, syncs), ms | {ms(t['outside_s'])} | "
+                  f"{ms(f['outside_s'])} | {c['ratio_outside']:.2f} |",
+                  f"| kernel launches | {t['launches']:.0f} | {f['launches']:.0f} | |", ""]
+        eq = c["equality"]
+        worst = max(v for k, v in eq.items() if k != "loss_rel")
+        loads = ", ".join(f"{r['loadavg_before'][0]:.1f}" for r in c["runs"])
+        notes = sorted({x for r in c["runs"] for x in r["notes"]})
+        lines += [f"Replayed {c['replayed']} of {c['iterations_frozen']} timed frozen "
+                  "iterations (the others ran traced after a capacity overflow). Same "
+                  f"state, view and TV block, frozen vs traced: loss relative difference "
+                  f"{eq['loss_rel']:.1e}, largest gradient difference {worst:.1e} of that "
+                  f"gradient's largest entry. Load at process start: {loads}."]
+        lines += ([""] + [f"Log: {x}" for x in notes]) if notes else []
+        lines.append("")
+    return "\n".join(lines)
+
+
+def frozen_main(args) -> int:
+    cells = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in args.sizes:
+            for method in args.methods:
+                if not state_path(method, n).exists():
+                    print(f"training the {method} {n}^3 state ...", flush=True)
+                    _spawn(["--make-state", method, str(n), str(TRAIN_ITERS.get(n, 400))])
+                runs = []
+                for r in range(args.rounds):
+                    out = os.path.join(tmp, f"frozen_{method}_{n}_{r}.json")
+                    print(f"{method} {n}^3 frozen vs traced, process {r + 1}/{args.rounds}",
+                          flush=True)
+                    _spawn(["--frozen-worker", method, str(n), str(args.iters),
+                            str(args.blocks), out])
+                    runs.append(json.loads(Path(out).read_text()))
+                cells.append(_frozen_cell(runs))
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+            "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
+                                                             _git("status", "--porcelain") else ""),
+            "rounds": args.rounds, "blocks": args.blocks, "iters": args.iters,
+            "variant": args.variant}
+    outdir = Path(args.out)
+    outdir.mkdir(parents=True, exist_ok=True)
+    name = "train_step_frozen" + ("_cuda" if args.variant.startswith("cuda") else "")
+    (outdir / f"{name}.json").write_text(json.dumps({"meta": meta, "cells": cells}, indent=1))
+    (outdir / f"{name}.md").write_text(_frozen_markdown(meta, cells))
+    print((outdir / f"{name}.md").read_text())
+    return 0
+
+
 # ====================================================================== harness
 def _export(rev: str) -> Path:
     sha = subprocess.check_output(["git", "rev-parse", rev], cwd=ROOT, text=True).strip()
@@ -437,7 +633,16 @@ def main() -> int:
                     help=argparse.SUPPRESS)
     ap.add_argument("--make-state", nargs=3, metavar=("METHOD", "N", "ITERS"),
                     help=argparse.SUPPRESS)
+    ap.add_argument("--frozen", action="store_true", help="time the frozen step against the "
+                    "traced one (writes train_step_frozen*.{md,json})")
+    ap.add_argument("--blocks", type=int, default=3, help="--frozen: traced/frozen "
+                    "alternations per process")
+    ap.add_argument("--frozen-worker", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.frozen_worker:
+        m, n, it, b, out = args.frozen_worker
+        frozen_worker(m, int(n), int(it), int(b), out)
+        return 0
     if args.worker:
         m, n, it, out = args.worker
         worker(m, int(n), int(it), out)
@@ -449,6 +654,10 @@ def main() -> int:
     if args.quick:
         args.iters, args.rounds = 3, 1
     os.environ["MI_GRG_VARIANT"] = args.variant   # inherited by every process (_spawn)
+    if args.frozen:
+        if args.quick:
+            args.blocks = 1
+        return frozen_main(args)
     before = args.before
     codes = [("after", None)]
     if before.lower() != "none":

@@ -151,7 +151,8 @@ class _ProjectOp(dr.CustomOp):
         plan = list(plan_chunks(setup.n, setup.nviews, setup.det.npix_py, RECORDS_PER_CHUNK,
                                 PIXELS_PER_CHUNK))
         for v0, v1, g0, g1 in plan:
-            prep = PreparedChunk(gauss, setup.views, setup.det, v0, v1, g0, g1, means2d, setup.n)
+            prep = PreparedChunk(gauss, setup.views, setup.det, v0, v1, g0, g1, means2d, setup.n,
+                                 caps=getattr(setup, "caps", None))
             if len(plan) == 1:
                 self._single = prep
             yield prep
@@ -189,8 +190,8 @@ class _ProjectOp(dr.CustomOp):
         vbase = view_base(prep.reg_vi, det, v0, view=prep.v0 if one_view else None)
         return _sweep_rows(
             mode, prep.row_batches(ROWS_PER_BATCH), image, prep.params, prep.n_reg,
-            lambda rec, row: regular_kernel(mode, det, arrays, vbase, rec, row, image,
-                                            gimage, tan))
+            lambda rec, row, valid=None: regular_kernel(mode, det, arrays, vbase, rec, row,
+                                                        image, gimage, tan, valid))
 
     def _run_near(self, prep, gauss, means2d, mode, image, gimage, tangent_src):
         """The near-source records' kernels over every detector row; per-record gradient
@@ -201,12 +202,15 @@ class _ProjectOp(dr.CustomOp):
             dr.eval(params)
         tan = tangent_src(prep, "near") if mode == dr.ADMode.Forward else None
         vbase = view_base(prep.near_vi, det, 0 if mode == dr.ADMode.Backward else prep.v0)
-        n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
-        row_lo = dr.zeros(mi.Int32, prep.n_near)
+        if prep.caps is not None:     # a recorded step: device lanes, empty slots masked
+            batches = prep.near_lanes(det.nv_py)
+        else:
+            n_rows = np.full(prep.n_near, det.nv_py, np.uint32)
+            batches = expand_rows(n_rows, dr.zeros(mi.Int32, prep.n_near), ROWS_PER_BATCH)
         return _sweep_rows(
-            mode, expand_rows(n_rows, row_lo, ROWS_PER_BATCH), image, params, prep.n_near,
-            lambda rec, row: near_kernel(mode, det, params, vbase, rec, row, image, gimage,
-                                         tan))
+            mode, batches, image, params, prep.n_near,
+            lambda rec, row, valid=None: near_kernel(mode, det, params, vbase, rec, row, image,
+                                                     gimage, tan, valid))
 
     def _leaves(self):
         """Fresh differentiable copies of the inputs (for AD inside backward/forward)."""
@@ -351,10 +355,10 @@ def _sweep_rows(mode, batches, image, params, n_records: int, kernel):
     per-record gradient sums and returns them; otherwise the image is evaluated per batch
     (so a batch's lanes never pile up in one trace) and None is returned."""
     sums = RecordSums(params, n_records) if mode == dr.ADMode.Backward else None
-    for rec, row in batches:
-        r = kernel(rec, row)
+    for batch in batches:       # (rec, row) or, with a row capacity, (rec, row, valid)
+        r = kernel(*batch)
         if sums is not None:
-            sums.add(r, rec)
+            sums.add(r, batch[0])
         else:
             dr.eval(image)
     return None if sums is None else sums.result()

@@ -60,15 +60,20 @@ class PreparedChunk:
     """Classification and footprints of one chunk (all detached): views [v0, v1) x
     Gaussians [g0, g1), records view-major (index = view * (g1 - g0) + Gaussian)."""
 
-    def __init__(self, gauss, views, det, v0, v1, g0, g1, means2d, n_gauss):
+    def __init__(self, gauss, views, det, v0, v1, g0, g1, means2d, n_gauss, caps=None):
         U = mi.UInt32
         self.v0, self.v1 = v0, v1
+        # caps (``RowCapacity``, a recorded training step's): no host read, the lanes a
+        # fixed capacity, the counts left on the device for the caller to check
+        self.caps = caps
         nvc, ngc = v1 - v0, g1 - g0
         # One view and every Gaussian (a training iteration): the records are the Gaussians
         # themselves, indexed directly (gi = None) and not compacted to the regular ones
         # (non-regular records get no rows).
         identity = (nvc == 1 and ngc == n_gauss
                     and (means2d is None or dr.width(means2d) == n_gauss))
+        if caps is not None and not identity:
+            raise ValueError("a row capacity needs one view and every Gaussian in one chunk")
         gi = None if identity else g0 + dr.tile(dr.arange(U, ngc), nvc)
         vi = v0 + dr.repeat(dr.arange(U, nvc), ngc)
         dr.eval(vi)   # keeps the sizes (literals) out of the big kernels below
@@ -102,7 +107,9 @@ class PreparedChunk:
                 self.footprint = {k: dr.gather(type(v), v, self.reg_ids)
                                   for k, v in footprint.items()}
                 self.packed = pack_records(det, self.params, self.footprint)
-            if det.cone:
+            if caps is not None:
+                self.near_ids = self._capacity_near(near if det.cone else None, ngc)
+            elif det.cone:
                 self.near_ids = dr.compress(near)
             else:
                 self.near_ids = U()
@@ -118,7 +125,7 @@ class PreparedChunk:
         if self.reg_gi is not None:
             dr.eval(self.reg_gi)
         self.n_reg = ngc if identity else dr.width(self.reg_ids)
-        self.n_near = dr.width(self.near_ids)
+        self.n_near = dr.width(self.near_ids)   # a recorded step's: its capacity
         self._batches = None
 
     def row_batches(self, rows_per_batch: int):
@@ -131,6 +138,9 @@ class PreparedChunk:
             self._batches = []
             return self._batches
         n_rows = self.footprint["n_rows"]
+        if self.caps is not None:
+            self._batches = [self._capacity_lanes(n_rows, self.caps.rows)]
+            return self._batches
         total = int(dr.sum(n_rows, axis=None)[0])
         if total <= rows_per_batch:
             # one batch (the training case), expanded on the device: no host round trip
@@ -142,6 +152,60 @@ class PreparedChunk:
                 self._batches.append((rec, row))
             return self._batches
         return expand_rows(n_rows.numpy(), self.footprint["row_lo"], rows_per_batch)
+
+    def _capacity_near(self, near, n: int):
+        """The near-source records packed into ``caps.near`` slots (Gaussian 0 in the
+        slots past their count, masked by ``near_valid``); their count stays on the
+        device (``caps.near_count``): past the capacity, records are missing."""
+        U, caps = mi.UInt32, self.caps
+        if near is None:
+            caps.near_count = dr.zeros(U, 1)
+            dr.eval(caps.near_count)
+            return U()
+        flag = U(near)
+        caps.near_count = dr.sum(flag)
+        if not caps.near:
+            dr.eval(caps.near_count)
+            return U()
+        pos = dr.prefix_sum(flag)
+        ids = dr.zeros(U, caps.near)
+        dr.scatter(ids, dr.arange(U, n), pos, active=near & (pos < caps.near))
+        self.near_valid = dr.arange(U, caps.near) < caps.near_count
+        dr.eval(ids, self.near_valid, caps.near_count)
+        return ids
+
+    def near_lanes(self, nv: int):
+        """(rec, row, valid): every detector row of each near slot (a recorded step's)."""
+        U = mi.UInt32
+        lane = dr.arange(U, self.caps.near * nv)
+        rec = lane // nv
+        row = mi.Int32(lane - rec * nv)
+        valid = dr.gather(mi.Bool, self.near_valid, rec)
+        dr.eval(rec, row, valid)
+        return [(rec, row, valid)]
+
+    def _capacity_lanes(self, n_rows, capacity: int):
+        """(rec, row, valid) for ``capacity`` lanes: the first sum(n_rows) are the records'
+        rows, the rest invalid (their records' last segment is exhausted there). The row
+        total stays on the device (``caps.rows_total``): past the capacity rows are
+        missing."""
+        U = mi.UInt32
+        self.caps.rows_total = total = dr.sum(n_rows)
+        rec, offset = segment_lanes(n_rows, 0, capacity)
+        valid = offset < dr.gather(U, n_rows, rec)
+        row = mi.Int32(offset) + dr.gather(mi.Int32, self.footprint["row_lo"], rec)
+        dr.eval(rec, row, valid, total)
+        return rec, row, valid
+
+
+class RowCapacity:
+    """What a recorded training step fixes in advance: the (record, row) lanes of the
+    regular records and the near-source record slots. The chunk leaves the counts it
+    needed (mi.UInt32 [1], on the device) in ``rows_total`` and ``near_count``."""
+
+    def __init__(self, rows: int, near: int):
+        self.rows, self.near = int(rows), int(near)
+        self.rows_total = self.near_count = None
 
 
 def view_base(vi, det, v0=0, view=None):

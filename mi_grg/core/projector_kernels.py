@@ -90,9 +90,13 @@ def lane_base(vbase, rec):
 class _RegularLane:
     """Row constants of regular (record, row) lanes and the closed form at one pixel."""
 
-    def __init__(self, det, prep_arrays, vbase, rec, row):
+    def __init__(self, det, prep_arrays, vbase, rec, row, valid=None):
         params, footprint, packed = prep_arrays
+        if valid is not None:    # capacity lanes past the last row: row 0, no pixel
+            row = dr.select(valid, row, 0)
         t, v, dv, lo, hi = lane_values(det, params, footprint, packed, rec, row)
+        if valid is not None:
+            lo, hi = dr.select(valid, lo, 0), dr.select(valid, hi, -1)
         self.t, self.v, self.dv, self.lo, self.hi = t, v, dv, lo, hi
         self.uc, self.N11, self.N21, self.N22, self.amp = (t["uc"], t["N11"], t["N21"],
                                                            t["N22"], t["amp"])
@@ -131,15 +135,17 @@ class _RegularLane:
         return du, y1, num, None, None, None, m2, base0
 
 
-def regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None, tan=None):
+def regular_kernel(mode, det, prep_arrays, vbase, rec, row, image, gimage=None, tan=None,
+                   valid=None):
     """One lane per (record, detector row); loops over the row's footprint pixels.
 
     ``prep_arrays`` = (params, footprint, packed) of the records. Mode
     ``dr.ADMode.Primal``: add the values into ``image`` (rows ``det.stride`` apart; on LLVM
     ``lanes.PACKET`` pixels per store); ``Backward``: return the gradient of <image, gimage>
     w.r.t. the 11 (6 parallel) record parameters per lane; ``Forward``: scatter-add the
-    tangent given the parameter tangents ``tan``."""
-    lane = _RegularLane(det, prep_arrays, vbase, rec, row)
+    tangent given the parameter tangents ``tan``. ``valid`` (mi.Bool, optional) marks
+    the lanes that hold a row; the others add nothing."""
+    lane = _RegularLane(det, prep_arrays, vbase, rec, row, valid)
     if mode == dr.ADMode.Forward:
         return _regular_forward(det, lane, rec, image, tan)
     if mode == dr.ADMode.Primal and lanes.use_packets():
@@ -301,8 +307,10 @@ class _NearLane:
     """Row constants of near-source (record, row) lanes and the exact half-line form
     rho sqrt(2 pi / a) exp(-m^2/2) Phi(s) at one pixel."""
 
-    def __init__(self, det, params, vbase, rec, row):
+    def __init__(self, det, params, vbase, rec, row, valid=None):
         F = mi.Float
+        # the row's last pixel; -1 (no pixel) for a recorded step's empty slots
+        self.last = det.nu - 1 if valid is None else dr.select(valid, det.nu - 1, -1)
         gather = lambda a: dr.gather(F, a, rec)  # noqa: E731
         t = {k: gather(params[k]) for k in NEAR_PARAMS}
         self.M = [[t[f"M{l}{k}"] for k in range(3)] for l in range(3)]
@@ -350,10 +358,12 @@ class _NearLane:
         return gD, gg, base0 * Phi
 
 
-def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None):
+def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None,
+                valid=None):
     """One lane per (near record, detector row) over the whole row; exact half-line form.
-    Modes as in ``regular_kernel`` (13 record parameters, ``NEAR_PARAMS``)."""
-    lane = _NearLane(det, params, vbase, rec, row)
+    Modes as in ``regular_kernel`` (13 record parameters, ``NEAR_PARAMS``); lanes not
+    ``valid`` (mi.Bool, optional) add nothing."""
+    lane = _NearLane(det, params, vbase, rec, row, valid)
     if mode == dr.ADMode.Primal:
         return _near_primal(det, lane, image)
     if mode == dr.ADMode.Forward:
@@ -362,7 +372,7 @@ def near_kernel(mode, det, params, vbase, rec, row, image, gimage=None, tan=None
 
 
 def _near_primal(det, lane, image):
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     smode = scatter_mode()
 
     def body(j):
@@ -375,7 +385,7 @@ def _near_primal(det, lane, image):
 
 def _near_forward(det, lane, rec, image, tan):
     tt = {k: dr.gather(mi.Float, tan[k], rec) for k in NEAR_PARAMS}
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     smode = scatter_mode()
 
     def body(j):
@@ -392,7 +402,7 @@ def _near_forward(det, lane, rec, image, tan):
 
 def _near_backward(det, lane, gimage):
     F = mi.Float
-    j0, last = mi.Int32(0), det.nu - 1
+    j0, last = mi.Int32(0), lane.last
     zero = F(0)
 
     def body(j, *acc):

@@ -153,6 +153,7 @@ class _Plan:
     ext2: float           # extent^2
     box_pairs: int        # sum of the box volumes (an upper bound of the pairs)
     max_columns: int      # largest column count of one box
+    masked: bool = False  # lanes past the last column / slice (a capacity plan): masked
 
 
 #: Boxes with fewer columns than this split their column index in float32 (exact there).
@@ -188,7 +189,18 @@ def _cut_chunks(ids, units, weight, chunk_pairs: int) -> list:
     return chunks
 
 
-def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pairs) -> _Plan:
+def _block_start(start, k: int, T, plus: int = 0):
+    """Block corner (+ ``plus``) along axis k as an opaque T: from a Python int (a traced
+    plan) or from a device mi.Int32 [1] (a recorded step's: the block is not baked in)."""
+    s = start[k]
+    if isinstance(s, (int, np.integer)):
+        return dr.opaque(T, int(s) + plus)
+    return T(s) + plus if plus else T(s)
+
+
+def _boxes(positions, scales, rotations, geometry, start, size, extent):
+    """Each Gaussian's voxel box clipped to the block: first voxel (3 x mi.Int32 [N]) and
+    size (3 x mi.UInt32 [N], 0 where it misses), evaluated; the grid corner and voxel size."""
     Float, Int32, UInt32 = mi.Float, mi.Int32, mi.UInt32
     p = dr.detach(positions)
     s = dr.detach(scales)
@@ -207,13 +219,19 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
         inv_d = dr.opaque(Float, 1.0 / d[k])
         first = dr.ceil((pk - h - a) * inv_d - 0.5)
         last = dr.floor((pk + h - a) * inv_d - 0.5)
-        b0 = dr.opaque(Float, start[k])
-        b1 = dr.opaque(Float, start[k] + size[k])
+        b0 = _block_start(start, k, Float)
+        b1 = _block_start(start, k, Float, size[k])
         first = dr.clip(first, b0, b1)              # clip before any int conversion
         last = dr.clip(last, b0 - 1, b1 - 1)
         lo.append(Int32(first))
         nn.append(UInt32(dr.maximum(last - first + 1, 0)))
     dr.eval(lo, nn)
+    return lo, nn, x0, d
+
+
+def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pairs) -> _Plan:
+    lo, nn, x0, d = _boxes(positions, scales, rotations, geometry, start, size, extent)
+    UInt32 = mi.UInt32
     nx, ny, nz = (np.asarray(x, np.int64) for x in nn)
     nslice = nx.copy()
     nslice[(ny == 0) | (nz == 0)] = 0
@@ -227,6 +245,26 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
                  slice_chunks=_cut_chunks(ids, nslice, ny * (nz + _COLUMN_COST), chunk_pairs),
                  x0=x0, d=d, ext2=extent * extent, box_pairs=int(np.sum((ncol * nz)[ids])),
                  max_columns=int(ncol.max()) if ncol.size else 0)
+
+
+def capacity_plan(positions, scales, rotations, geometry, start, size, extent, caps) -> _Plan:
+    """The pair plan of a recorded training step: no host read. ``start``: 3 device
+    mi.Int32 [1]; one chunk of ``caps.cols`` column lanes (``caps.slices`` slice lanes
+    backward) over every Gaussian, the lanes past the boxes' columns (slices) masked;
+    their totals left on the device in ``caps.cols_total`` / ``caps.slices_total`` for
+    the caller (past the capacity, pairs are missing). Boxes are clipped to the block,
+    so a box's columns never exceed size[0] size[1] (the float32 division's bound)."""
+    lo, nn, x0, d = _boxes(positions, scales, rotations, geometry, start, size, extent)
+    UInt32 = mi.UInt32
+    nslice = dr.select((nn[1] == 0) | (nn[2] == 0), 0, nn[0])
+    ncol = nslice * nn[1]
+    caps.cols_total, caps.slices_total = dr.sum(ncol), dr.sum(nslice)
+    dr.eval(nslice, ncol, caps.cols_total, caps.slices_total)
+    ids = dr.arange(UInt32, dr.width(ncol))
+    return _Plan(start=start, size=size, lo=lo, n=nn, ncol=ncol, nslice=nslice,
+                 col_chunks=[(ids, 0, caps.cols)], slice_chunks=[(ids, 0, caps.slices)],
+                 x0=x0, d=d, ext2=extent * extent, box_pairs=-1,
+                 max_columns=size[0] * size[1], masked=True)
 
 
 _LANE_WIDTH = 16   # floats per packed Gaussian (see _pack_chunk)
@@ -273,15 +311,20 @@ def _lane(plan: _Plan, g, ix, v: dict) -> dict:
 def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho, packed=None) -> dict:
     """The (Gaussian, x) slices of one chunk, one lane each. Left unevaluated: it fuses
     into the loop kernel."""
-    slot, ix = segment_lanes(dr.gather(mi.UInt32, plan.nslice, ids), skip, n_slices)
+    counts = dr.gather(mi.UInt32, plan.nslice, ids)
+    slot, ix = segment_lanes(counts, skip, n_slices)
     g = dr.gather(mi.UInt32, ids, slot)
-    return _lane(plan, g, ix, _gaussian_values(plan, g, slot, p, a, rho, packed))
+    lane = _lane(plan, g, ix, _gaussian_values(plan, g, slot, p, a, rho, packed))
+    if plan.masked:      # a lane past the last slice loops over no column
+        lane["ny"] = dr.select(ix < dr.gather(mi.UInt32, counts, slot), lane["ny"], 0)
+    return lane
 
 
 def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho, packed=None):
     """The (Gaussian, x, y) columns of one chunk, one lane each: (lane, column)."""
     UInt32, Float = mi.UInt32, mi.Float
-    slot, local = segment_lanes(dr.gather(UInt32, plan.ncol, ids), skip, n_cols)
+    counts = dr.gather(UInt32, plan.ncol, ids)
+    slot, local = segment_lanes(counts, skip, n_cols)
     g = dr.gather(UInt32, ids, slot)
     v = _gaussian_values(plan, g, slot, p, a, rho, packed)
     # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0)
@@ -294,7 +337,10 @@ def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho, packed=None):
     else:
         ix = local // ny
     lane = _lane(plan, g, ix, v)
-    return lane, _column(plan, lane, local - ix * ny)
+    col = _column(plan, lane, local - ix * ny)
+    if plan.masked:      # a lane past the last column has no voxel
+        col["count"] = dr.select(local < dr.gather(UInt32, counts, slot), col["count"], 0)
+    return lane, col
 
 
 def _column(plan: _Plan, lane: dict, iy) -> dict:
@@ -315,13 +361,13 @@ def _column(plan: _Plan, lane: dict, iy) -> dict:
     half = dr.sqrt(dr.maximum(disc, 0)) * inv_a22 * (1 + 1e-4)   # widened: m^2 test decides
     zc = lane["pz"] - beta * inv_a22
     inv_dz = dr.rcp(dv[2])
-    zs = dr.opaque(Float, plan.start[2])
-    ze = dr.opaque(Float, plan.start[2] + plan.size[2])
+    zs = _block_start(plan.start, 2, Float)
+    ze = _block_start(plan.start, 2, Float, plan.size[2])
     z_first = dr.clip(dr.ceil((zc - half - x0[2]) * inv_dz - 0.5), zs, ze)
     z_last = dr.clip(dr.floor((zc + half - x0[2]) * inv_dz - 0.5), zs - 1, ze - 1)
     count = UInt32(dr.select(disc >= 0, dr.maximum(z_last - z_first + 1, 0), 0))
     az = Int32(z_first)
-    st = [dr.opaque(Int32, v) for v in plan.start]
+    st = [_block_start(plan.start, k, Int32) for k in range(3)]
     sy = dr.opaque(Int32, plan.size[1])
     sz = dr.opaque(Int32, plan.size[2])
     return {"count": count, "z0": az - st[2],
@@ -562,6 +608,22 @@ def voxelize_dr(gaussians: Gaussians, geometry: Geometry, block=None, extent=Non
         flat = dr.custom(_VoxelizeOp, p, a, rho, plan)
     else:
         flat = _forward(plan, p, a, rho)
+    return mi.TensorXf(flat, size)
+
+
+def voxelize_block_capacity(gaussians: Gaussians, geometry: Geometry, start, size, extent,
+                            density_scale, caps):
+    """``voxelize_dr`` of one block inside a recorded training step: the block's corner on
+    the device (3 x mi.Int32 [1]), the pairs as capacities (``capacity_plan``, ``caps``
+    with ``cols`` and ``slices``), and no input checks (host reads)."""
+    g = gaussians
+    rho = g.densities if density_scale is None else g.densities * density_scale
+    q = unit_quaternions(g.rotations)
+    size = tuple(int(x) for x in size)
+    plan = capacity_plan(g.positions, g.scales, q, geometry, start, size, float(extent), caps)
+    A = inverse_covariance(g.scales, q)
+    a = [A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]]
+    flat = dr.custom(_VoxelizeOp, mi.Point3f(g.positions), a, rho, plan)
     return mi.TensorXf(flat, size)
 
 

@@ -35,7 +35,8 @@ CHECKPOINT_NAME = "checkpoint.npz"
 # mi_grg.lab.staleness.stale_keys). A field added with a default that CHANGES behaviour
 # must not be listed, so that such runs count as stale and such checkpoints do not resume.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
-               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk"}
+               "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk",
+               "frozen_step": False}
 
 
 def upgrade_config_dict(values: dict) -> dict:

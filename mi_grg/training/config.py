@@ -41,7 +41,7 @@ AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
 #: Fields that cannot change a run's result (when its checkpoints are written): a resume
 #: may change them, and a finished run is not stale for them
 #: (``mi_grg.lab.staleness.stale_keys``).
-BOOKKEEPING = ("checkpoint_every",)
+BOOKKEEPING = ("checkpoint_every", "frozen_step")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
 PRESETS = {
@@ -202,6 +202,10 @@ class Run:
                                    # returned state): the iteration count and schedule are
                                    # planned from a probe of this machine's speed instead of
                                    # iteration_rule (mi_grg.training.budget); None: no budget
+    frozen_step: bool = False      # record the iterations without TV block once with
+                                   # dr.freeze and replay them (no Python tracing per
+                                   # iteration; mi_grg.training.frozen_step): the same
+                                   # results, less host time
 
 
 #: TrainConfig's parts: attribute -> part class. Field names are unique across the parts,

@@ -186,6 +186,12 @@ class _Rows:
         self.src = src
 
 
+def add_one_view(grad_accum, view_count, g, visible):
+    """One view's statistics added: (grad_accum + g, view_count + 1) where ``visible``
+    (``PGADensifier.accumulate``; the recorded training step uses it too)."""
+    return grad_accum + dr.select(visible, g, 0.0), view_count + dr.select(visible, 1.0, 0.0)
+
+
 class PGADensifier:
     """Clone/split/prune with PGA's graph-augmented gradient (see the module docstring).
 
@@ -259,8 +265,8 @@ class PGADensifier:
             raise DensifyError(f"visible has width {dr.width(vis)}, grad2d_norm {w}")
         g = dr.detach(g)
         if n_views == 1:
-            self.grad_accum = self.grad_accum + dr.select(vis, g, 0.0)
-            self.view_count = self.view_count + dr.select(vis, 1.0, 0.0)
+            self.grad_accum, self.view_count = add_one_view(self.grad_accum, self.view_count,
+                                                            g, vis)
         else:
             idx = dr.arange(mi.UInt32, w) % n
             acc, cnt = mi.Float(self.grad_accum), mi.Float(self.view_count)

@@ -175,7 +175,6 @@ class Adam:
         unknown = sorted(set(params) - set(self.lr0))
         if unknown:
             raise AdamError(f"unknown parameter group(s) {unknown}; known: {sorted(self.lr0)}")
-        b1, b2 = self.betas
         gs = {}
         for name, p in params.items():
             if grads is not None:
@@ -211,30 +210,35 @@ class Adam:
         # Checked above for every group first: an error leaves the whole state unchanged.
         out = {}
         for name, p in params.items():
-            g = gs[name]
-            st = self.state.get(name)
-            if st is None:
-                n = dr.width(p)
-                st = GroupState(m=dr.zeros(type(p), n), v=dr.zeros(type(p), n))
-                self.state[name] = st
+            st = self.group_state(name, p)
             st.step += 1
-            t = st.step
-            lr = self.lr(name, t if iteration is None else iteration)
-            st.m = type(p)(dr.fma(st.m, b1, (1.0 - b1) * g))
-            st.v = type(p)(dr.fma(st.v, b2, (1.0 - b2) * dr.square(g)))
-            bc1 = 1.0 - b1 ** t
-            bc2 = 1.0 - b2 ** t
             # Step-dependent scalars are opaque: as literals they would change the kernel
             # (and force a recompilation) at every step.
-            step_size = dr.opaque(mi.Float, lr / bc1)
-            inv_bc2 = dr.opaque(mi.Float, 1.0 / math.sqrt(bc2))
-            denom = dr.sqrt(st.v) * inv_bc2 + self.eps
-            new = type(p)(dr.detach(p) - step_size * st.m / denom)
+            step_size, inv_bc2 = (dr.opaque(mi.Float, x) for x in
+                                  self.step_scalars(name, st.step, iteration))
+            new, st.m, st.v = adam_update(p, gs[name], st.m, st.v, self.betas, self.eps,
+                                          step_size, inv_bc2)
             dr.enable_grad(new)
             # one kernel per group: one kernel for all groups (42 streams) was 1.3x slower
             dr.eval(new, st.m, st.v)
             out[name] = new
         return out
+
+    def group_state(self, name: str, p) -> GroupState:
+        """Group ``name``'s state, created (zero moments like ``p``) on its first step."""
+        st = self.state.get(name)
+        if st is None:
+            n = dr.width(p)
+            st = GroupState(m=dr.zeros(type(p), n), v=dr.zeros(type(p), n))
+            self.state[name] = st
+        return st
+
+    def step_scalars(self, name: str, t: int, iteration: int | None = None) -> tuple:
+        """(lr / (1 - b1^t), 1 / sqrt(1 - b2^t)) of group ``name``'s t-th update (the lr at
+        ``iteration`` if given, else at t)."""
+        b1, b2 = self.betas
+        lr = self.lr(name, t if iteration is None else iteration)
+        return lr / (1.0 - b1 ** t), 1.0 / math.sqrt(1.0 - b2 ** t)
 
     # ------------------------------------------------------------------ state surgery
     def width(self) -> int | None:
@@ -303,6 +307,17 @@ class Adam:
     def _check_name(self, name):
         if name not in self.lr0:
             raise AdamError(f"unknown parameter group {name!r}; known: {sorted(self.lr0)}")
+
+
+def adam_update(p, g, m, v, betas, eps: float, step_size, inv_bc2):
+    """One group's Adam update: (new parameter, detached; m; v) from the gradient ``g``,
+    the moments and the step's opaque scalars (``Adam.step_scalars``). ``Adam.step`` and
+    the recorded training step (mi_grg.training.frozen_step) both use it."""
+    b1, b2 = betas
+    m = type(p)(dr.fma(m, b1, (1.0 - b1) * g))
+    v = type(p)(dr.fma(v, b2, (1.0 - b2) * dr.square(g)))
+    denom = dr.sqrt(v) * inv_bc2 + eps
+    return type(p)(dr.detach(p) - step_size * m / denom), m, v
 
 
 def _to_rows(x) -> np.ndarray:

@@ -231,6 +231,13 @@ class Trainer:
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
         self._stop = None     # where the stop rule fired (views.Stop), set by run()
+        self.frozen = None
+        if cfg.run.frozen_step:
+            from mi_grg.training.frozen_step import FrozenStep
+            self.frozen = FrozenStep(geo, self.extent, cfg.losses.lambda_ssim, tv=(
+                cfg.losses.lambda_tv * cfg.losses.tv_every,
+                np.minimum(cfg.losses.tv_block, geo.nVoxel),
+                self.tv_extent))
         if resuming:
             self.state = load_checkpoint(source, self.optimizer, self.densifier,
                                          self.stopper, cfg)
@@ -509,6 +516,11 @@ class Trainer:
         nv, nu = geo.nDetector
         weights = self.views.draw_weights(it, self._stop)
         view = int(self.rng.choice(self.views.train_views(it, self._stop), p=weights))
+        start = self._tv_start(it)
+        if self.frozen is not None:
+            done = self.frozen.iteration(self, it, raw, view, start, laplacian_weight)
+            if done is not None:
+                return done
         g = Gaussians.from_raw(raw)
         ds = self._density_scale
         n = len(g)
@@ -517,10 +529,8 @@ class Trainer:
         img = self._project(g, geo.angles[view:view + 1], ds, means2d)
         pred = mi.TensorXf(img.array, (nv, nu))
         loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
-        if cfg.losses.lambda_tv > 0 and it % cfg.losses.tv_every == 0:
-            nvox = np.asarray(geo.nVoxel)
-            block = np.minimum(cfg.losses.tv_block, nvox)
-            start = [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
+        if start is not None:
+            block = np.minimum(cfg.losses.tv_block, np.asarray(geo.nVoxel))
             from mi_grg.core.voxelizer import voxelize_dr
             vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
                               density_scale=ds)
@@ -539,6 +549,15 @@ class Trainer:
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
         return self.optimizer.step(raw), loss_value
+
+    def _tv_start(self, it: int):
+        """This iteration's TV block corner [x, y, z] (a random draw), or None (no TV)."""
+        cfg = self.cfg
+        if not (cfg.losses.lambda_tv > 0 and it % cfg.losses.tv_every == 0):
+            return None
+        nvox = np.asarray(self.case.geometry.nVoxel)
+        block = np.minimum(cfg.losses.tv_block, nvox)
+        return [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
 
     def _densify_and_rebuild(self, it: int, raw: dict) -> dict:
         """PGA densification (graph term from the current graph), then a new graph; with
