@@ -69,3 +69,13 @@ def kernel_hashes():
         finally:
             dr.set_flag(dr.JitFlag.KernelHistory, flag)
     return run
+
+
+@pytest.fixture
+def sigint_raises():
+    """Ctrl-C as in a terminal (KeyboardInterrupt), whatever the test runner inherited: a
+    runner started in the background (``cmd &``) inherits SIGINT ignored."""
+    import signal
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)

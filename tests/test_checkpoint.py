@@ -211,7 +211,7 @@ def test_resumed_run_equals_the_uninterrupted_one_bit_for_bit(tiny_case, tmp_pat
 
 
 def test_ctrl_c_finishes_the_iteration_and_leaves_a_checkpoint_that_resumes(
-        tiny_case, tmp_path, uninterrupted, one_thread):
+        tiny_case, tmp_path, uninterrupted, one_thread, sigint_raises):
     """SIGINT during iteration 45 (the automatic interval of this 70-iteration run is 7, so
     the last periodic checkpoint is 42): the iteration finishes, a checkpoint of 45 is
     written, KeyboardInterrupt follows and the handler before the run is back. Resumed

@@ -171,14 +171,6 @@ def test_the_replaced_output_is_whole_and_complete(root, capsys):
 
 
 # ---------------------------------------------------------------- interrupted, killed
-@pytest.fixture
-def sigint_raises():
-    """Ctrl-C as in a terminal (KeyboardInterrupt), whatever the test runner inherited."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)
-
-
 def test_ctrl_c_keeps_the_run_for_resume(root, capsys, monkeypatch, sigint_raises):
     """Ctrl-C at iteration 7: exit 130, --out unchanged, the run kept beside it with its
     checkpoint of iteration 7; a resume with other options fails and keeps it; a resume
