@@ -401,7 +401,8 @@ def _frozen_adapter(step):
     from mi_grg.training.frozen_step import FrozenStep
     cfg = step.cfg
     step._density_scale, step.said = step.ds, []
-    return FrozenStep(step.geo, step.extent, cfg.lambda_ssim, log=step.said.append,
+    return FrozenStep(step.geo, step.extent, cfg.lambda_ssim, cfg.lambda_lap,
+                      log=step.said.append,
                       tv=(cfg.lambda_tv * cfg.tv_every,
                           np.minimum(cfg.tv_block, np.asarray(step.geo.nVoxel)),
                           step.tv_extent))

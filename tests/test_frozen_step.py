@@ -72,10 +72,10 @@ def _state(case, **kw):
         dr.enable_grad(v)
     tr._rebuild_graph(raw["positions"])
     said = []
-    fz = FrozenStep(case.geometry, tr.extent, cfg.losses.lambda_ssim, log=said.append,
-                    tv=(cfg.losses.lambda_tv * cfg.losses.tv_every, np.minimum(cfg.losses.tv_block,
-                                                                 case.geometry.nVoxel),
-                        tr.tv_extent))
+    fz = FrozenStep(case.geometry, tr.extent, cfg.losses.lambda_ssim, cfg.graph.lambda_lap,
+                    log=said.append,
+                    tv=(cfg.losses.lambda_tv * cfg.losses.tv_every,
+                        np.minimum(cfg.losses.tv_block, case.geometry.nVoxel), tr.tv_extent))
     return tr, raw, fz, said
 
 

@@ -180,11 +180,13 @@ class FrozenStep:
 
     ``iteration(trainer, it, raw, view, start, laplacian_weight)`` returns (new raw, loss
     value), or None when this iteration must run traced (the caller then runs its own
-    step: nothing of the recorded run is kept). ``tv``: (weight, block size, support) of
-    the TV term, or None."""
+    step: nothing of the recorded run is kept). ``lambda_lap``: the graph Laplacian's
+    weight (TrainConfig's, scaled per call by ``laplacian_weight``; 0: no Laplacian).
+    ``tv``: (weight, block size, support) of the TV term, or None."""
 
-    def __init__(self, geometry, extent, lambda_ssim, tv=None, log=print):
+    def __init__(self, geometry, extent, lambda_ssim, lambda_lap, tv=None, log=print):
         self.static = _Static(geometry, extent, lambda_ssim, tv)
+        self.lambda_lap = float(lambda_lap)   # the Laplacian's weight before its scaling
         self.views = _view_inputs(geometry)
         self.targets = {}
         # one recording per kind of iteration (with and without TV block), replaced when
@@ -281,8 +283,8 @@ class FrozenStep:
             self.fallbacks += 1
             return None
         lap_weight = None
-        if trainer.cfg.graph.lambda_lap > 0 and trainer.graph is not None:
-            lap_weight = laplacian_weight(trainer.cfg.graph.lambda_lap, n)
+        if self.lambda_lap > 0 and trainer.graph is not None:
+            lap_weight = laplacian_weight(self.lambda_lap, n)
         graph = trainer.graph if lap_weight is not None else None
         update = _update_inputs(trainer, raw, n)
         out, key = self.run(raw, view, trainer.targets[view], graph,

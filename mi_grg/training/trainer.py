@@ -234,7 +234,8 @@ class Trainer:
         self.frozen = None
         if cfg.run.frozen_step:
             from mi_grg.training.frozen_step import FrozenStep
-            self.frozen = FrozenStep(geo, self.extent, cfg.losses.lambda_ssim, tv=(
+            self.frozen = FrozenStep(geo, self.extent, cfg.losses.lambda_ssim,
+                                     cfg.graph.lambda_lap, tv=(
                 cfg.losses.lambda_tv * cfg.losses.tv_every,
                 np.minimum(cfg.losses.tv_block, geo.nVoxel),
                 self.tv_extent))
