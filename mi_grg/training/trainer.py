@@ -231,14 +231,7 @@ class Trainer:
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
         self._stop = None     # where the stop rule fired (views.Stop), set by run()
-        self.frozen = None
-        if cfg.run.frozen_step:
-            from mi_grg.training.frozen_step import FrozenStep
-            self.frozen = FrozenStep(geo, self.extent, cfg.losses.lambda_ssim,
-                                     cfg.graph.lambda_lap, tv=(
-                cfg.losses.lambda_tv * cfg.losses.tv_every,
-                np.minimum(cfg.losses.tv_block, geo.nVoxel),
-                self.tv_extent))
+        self.frozen = self._frozen_step() if cfg.run.frozen_step else None
         if resuming:
             self.state = load_checkpoint(source, self.optimizer, self.densifier,
                                          self.stopper, cfg)
@@ -550,6 +543,15 @@ class Trainer:
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
         return self.optimizer.step(raw), loss_value
+
+    def _frozen_step(self):
+        """The recorded iteration (``TrainConfig.run.frozen_step``) for this run's losses."""
+        from mi_grg.training.frozen_step import FrozenStep
+        cfg, geo = self.cfg, self.case.geometry
+        tv = (cfg.losses.lambda_tv * cfg.losses.tv_every,
+              np.minimum(cfg.losses.tv_block, geo.nVoxel), self.tv_extent)
+        return FrozenStep(geo, self.extent, cfg.losses.lambda_ssim, cfg.graph.lambda_lap,
+                          tv=tv)
 
     def _tv_start(self, it: int):
         """This iteration's TV block corner [x, y, z] (a random draw), or None (no TV)."""
