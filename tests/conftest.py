@@ -79,3 +79,13 @@ def sigint_raises():
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, old)
+
+
+@pytest.fixture(scope="module")
+def tiny_case():
+    """A 16^3 Shepp-Logan case, 6 noiseless training views of 24^2 and 2 test views: the
+    training loop's tests (one per module)."""
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    geo = default_geometry(n=16, det=24, views=6)
+    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)

@@ -6,8 +6,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mi_grg.data.noise import NoiseModel
-from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training import budget
 from mi_grg.training.budget import (MIN_ITERATIONS, REPLAN_SHARE, LoopPace, ProbeCosts,
                                     TimeBudgetError, loop_seconds, make_plan, measured_pace,
@@ -173,11 +171,6 @@ def test_time_budget_in_an_xml_config(tmp_path):
 
 
 # ---------------------------------------------------------------------------- in training
-@pytest.fixture(scope="module")
-def tiny_case():
-    geo = default_geometry(n=16, det=24, views=6)
-    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
-
 
 def test_a_budget_run_is_the_planned_run(tiny_case, monkeypatch):
     """The probe draws no view of the run and leaves no optimiser or densifier state: the

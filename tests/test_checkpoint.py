@@ -9,8 +9,6 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_grg.data.noise import NoiseModel
-from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training.config import make_config
 from mi_grg.training.densify import DensifyConfig, DensifyError, PGADensifier
 from mi_grg.protocol.early_stop import EarlyStopper
@@ -24,11 +22,6 @@ OLD_CHECKPOINT = Path(__file__).parent / "data" / "checkpoint_42a14d5.npz"
 OLD_OPTIONS = dict(iterations=60, seed=5, n_points=120, max_gaussians=800, eval_every=100,
                    checkpoint_every=25, holdout_every=3, holdout_until=1.0, stop_noise=0.0)
 
-
-@pytest.fixture(scope="module")
-def tiny_case():
-    geo = default_geometry(n=16, det=24, views=6)
-    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
 
 
 def test_densifier_state_round_trip(variant):

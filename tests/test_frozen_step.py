@@ -1,7 +1,6 @@
 """The recorded training step (TrainConfig.frozen_step, mi_grg.training.frozen_step): the
 same loss and gradients as the traced step, re-recorded after a capacity overflow and a
 densification, and replayed after a resume."""
-import dataclasses
 
 import drjit as dr
 import mitsuba as mi
@@ -10,8 +9,6 @@ import pytest
 
 import mi_grg  # noqa: F401  (first: Dr.Jit's LLVM library and the variant)
 from mi_grg.core.gaussians import Gaussians
-from mi_grg.data.noise import NoiseModel
-from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training.config import make_config
 from mi_grg.training.frozen_step import FrozenStep
 from mi_grg.training.graph import laplacian_loss
@@ -22,11 +19,6 @@ from mi_grg.training.trainer import Trainer, laplacian_weight
 TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=20,
             holdout_every=3)
 
-
-@pytest.fixture(scope="module")
-def tiny_case():
-    geo = default_geometry(n=16, det=24, views=6)
-    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
 
 
 @pytest.fixture

@@ -18,11 +18,6 @@ TINY = dict(n_points=400, max_gaussians=800, eval_every=500, checkpoint_every=20
             holdout_every=3)
 
 
-@pytest.fixture(scope="module")
-def tiny_case():
-    geo = default_geometry(n=16, det=24, views=6)
-    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
-
 
 @pytest.mark.slow
 def test_gr_beats_fdk_and_sart_clearly(tmp_path):

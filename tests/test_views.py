@@ -5,8 +5,6 @@ import numpy as np
 import pytest
 
 import mi_grg
-from mi_grg.data.noise import NoiseModel
-from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
 from mi_grg.training.checkpoint import ADDED_LATER
 from mi_grg.training.config import ITERATION_RULE, TRAIN_EXTENT, ConfigError, make_config
 from mi_grg.training.trainer import Trainer
@@ -200,11 +198,6 @@ def test_runs_with_the_old_split_are_stale():
 
 
 # ---------------------------------------------------------------------------- in training
-@pytest.fixture(scope="module")
-def tiny_case():
-    geo = default_geometry(n=16, det=24, views=6)
-    return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
-
 
 def spy_views(t: Trainer, monkeypatch):
     """Record (iteration, trained view) and (iteration, evaluated views) of a run."""
