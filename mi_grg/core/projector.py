@@ -356,9 +356,30 @@ def _sweep_rows(mode, batches, image, params, n_records: int, kernel):
     (so a batch's lanes never pile up in one trace) and None is returned."""
     sums = RecordSums(params, n_records) if mode == dr.ADMode.Backward else None
     for batch in batches:       # (rec, row) or, with a row capacity, (rec, row, valid)
+        if len(batch) == 3:
+            _masked_batch(batch, sums, kernel)
+            dr.eval(image if sums is None else sums.acc)
+            continue
         r = kernel(*batch)
         if sums is not None:
             sums.add(r, batch[0])
         else:
             dr.eval(image)
     return None if sums is None else sums.result()
+
+
+def _masked_batch(batch, sums, kernel):
+    """A row capacity's batch (rec, row, valid): the kernel and the backward's record sums
+    inside a symbolic conditional on ``valid``. The lanes past the last row form the tail
+    of the batch, so whole SIMD packets (LLVM) skip them rather than run their set-up
+    masked; the kernel still masks the invalid lanes of a mixed packet."""
+    rec, row, valid = batch
+
+    def lanes(rec, row, valid):
+        r = kernel(rec, row, valid)
+        if sums is not None:
+            sums.add(r, rec, evaluate=False)
+        return ()
+
+    dr.if_stmt((rec, row, valid), valid, lanes, lambda *_: (), mode="symbolic",
+               label="capacity_lanes")

@@ -278,7 +278,9 @@ class RecordSums:
         else:
             self.acc = {k: dr.zeros(mi.Float, n) for k in self.keys}
 
-    def add(self, sums, rec):
+    def add(self, sums, rec, evaluate: bool = True):
+        """Add one batch's per-lane sums into their records (``evaluate=False``: left
+        lazy, e.g. inside a symbolic conditional; the caller evaluates ``acc``)."""
         if self.packed:
             vals = [sums[k] for k in self.keys]
             vals += [dr.zeros(mi.Float, dr.width(rec))] * (self.width - len(vals))
@@ -286,7 +288,8 @@ class RecordSums:
         else:
             for k in self.keys:
                 dr.scatter_add(self.acc[k], sums[k], rec, mode=dr.ReduceMode.Local)
-        dr.eval(self.acc)
+        if evaluate:
+            dr.eval(self.acc)
 
     def result(self) -> dict:
         if not self.packed:

@@ -154,6 +154,7 @@ class _Plan:
     box_pairs: int        # sum of the box volumes (an upper bound of the pairs)
     max_columns: int      # largest column count of one box
     masked: bool = False  # lanes past the last column / slice (a capacity plan): masked
+    totals: tuple = None  # a capacity plan's (columns, slices) totals (mi.UInt32 [1])
 
 
 #: Boxes with fewer columns than this split their column index in float32 (exact there).
@@ -264,7 +265,8 @@ def capacity_plan(positions, scales, rotations, geometry, start, size, extent, c
     return _Plan(start=start, size=size, lo=lo, n=nn, ncol=ncol, nslice=nslice,
                  col_chunks=[(ids, 0, caps.cols)], slice_chunks=[(ids, 0, caps.slices)],
                  x0=x0, d=d, ext2=extent * extent, box_pairs=-1,
-                 max_columns=size[0] * size[1], masked=True)
+                 max_columns=size[0] * size[1], masked=True,
+                 totals=(caps.cols_total, caps.slices_total))
 
 
 _LANE_WIDTH = 16   # floats per packed Gaussian (see _pack_chunk)
@@ -308,11 +310,11 @@ def _lane(plan: _Plan, g, ix, v: dict) -> dict:
             "py": py, "pz": pz, "a": v["a"], "rho": v["rho"]}
 
 
-def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho, packed=None) -> dict:
+def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho, packed=None,
+            segments=None) -> dict:
     """The (Gaussian, x) slices of one chunk, one lane each. Left unevaluated: it fuses
-    into the loop kernel."""
-    counts = dr.gather(mi.UInt32, plan.nslice, ids)
-    slot, ix = segment_lanes(counts, skip, n_slices)
+    into the loop kernel. ``segments``: (counts, slot, ix) of ``_segments`` if made."""
+    counts, slot, ix = segments or _segments(plan.nslice, ids, skip, n_slices)
     g = dr.gather(mi.UInt32, ids, slot)
     lane = _lane(plan, g, ix, _gaussian_values(plan, g, slot, p, a, rho, packed))
     if plan.masked:      # a lane past the last slice loops over no column
@@ -320,11 +322,20 @@ def _slices(plan: _Plan, ids, skip: int, n_slices: int, p, a, rho, packed=None) 
     return lane
 
 
-def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho, packed=None):
-    """The (Gaussian, x, y) columns of one chunk, one lane each: (lane, column)."""
+def _segments(units, ids, skip: int, n: int):
+    """(counts, slot, offset): the ``units`` (columns or slices per Gaussian) of the
+    Gaussians ``ids`` expanded into ``n`` lanes (``segment_lanes``: evaluated kernels)."""
+    counts = dr.gather(mi.UInt32, units, ids)
+    slot, offset = segment_lanes(counts, skip, n)
+    return counts, slot, offset
+
+
+def _columns(plan: _Plan, ids, skip: int, n_cols: int, p, a, rho, packed=None,
+             segments=None):
+    """The (Gaussian, x, y) columns of one chunk, one lane each: (lane, column).
+    ``segments``: (counts, slot, local) of ``_segments`` if made."""
     UInt32, Float = mi.UInt32, mi.Float
-    counts = dr.gather(UInt32, plan.ncol, ids)
-    slot, local = segment_lanes(counts, skip, n_cols)
+    counts, slot, local = segments or _segments(plan.ncol, ids, skip, n_cols)
     g = dr.gather(UInt32, ids, slot)
     v = _gaussian_values(plan, g, slot, p, a, rho, packed)
     # >= 1 also in the idle lanes of the last SIMD packet (their gathers give 0)
@@ -451,25 +462,55 @@ def _packet_column(plan: _Plan, lane: dict, c: dict, out, r):
                   label="voxelize_column_packet")
 
 
+def _capacity_lanes(plan: _Plan, n: int, total, fn) -> None:
+    """Run ``fn()`` (a chunk's lanes: set-up, loops, scatters; no return value) on the
+    first ``total`` (mi.UInt32 [1]) of ``n`` lanes of a capacity plan, inside a symbolic
+    conditional: the lanes past the total form the tail, so whole SIMD packets (LLVM) skip
+    them rather than run their set-up masked. Elsewhere ``fn()`` runs on every lane."""
+    if not plan.masked:
+        fn()
+        return
+    valid = dr.arange(mi.UInt32, n) < total
+    dr.if_stmt((), valid, lambda: (fn(), ())[1], lambda: (), mode="symbolic",
+               label="voxelize_capacity")
+
+
+def _capacity_segments(plan: _Plan, units, ids, skip: int, n: int, packed):
+    """A capacity plan's ``_segments``, evaluated with ``packed`` before the conditional
+    of ``_capacity_lanes`` (nothing is evaluated inside it); None elsewhere (the lanes
+    make them, fused into their kernel)."""
+    if not plan.masked:
+        return None
+    segments = _segments(units, ids, skip, n)
+    dr.eval(segments, packed)
+    return segments
+
+
 def _forward(plan: _Plan, p, a, rho):
     Float = mi.Float
     out = dr.zeros(Float, int(np.prod(plan.size)))
     packets = _use_packets(plan)
     for ids, skip, n_cols in plan.col_chunks:
-        lane, col = _columns(plan, ids, skip, n_cols, p, a, rho, _pack_chunk(plan, ids, p, a, rho))
-        r = lane["rho"]
-        if packets:
-            _packet_column(plan, lane, col, out, r)
-            dr.eval(out)
-            continue
+        packed = _pack_chunk(plan, ids, p, a, rho)
+        segments = _capacity_segments(plan, plan.ncol, ids, skip, n_cols, packed)
 
-        def step(c, k, dz, m2, inside):
-            val = r * _falloff(m2)
-            # Direct: lanes hit distinct addresses, a packet-local reduction only costs
-            dr.scatter_add(out, val, c["base"] + k, active=inside, mode=dr.ReduceMode.Direct)
-            return ()
+        def lanes():
+            lane, col = _columns(plan, ids, skip, n_cols, p, a, rho, packed, segments)
+            r = lane["rho"]
+            if packets:
+                _packet_column(plan, lane, col, out, r)
+                return
 
-        _voxel_loop(plan, lane, col, (), step)
+            def step(c, k, dz, m2, inside):
+                val = r * _falloff(m2)
+                # Direct: lanes hit distinct addresses, a packet-local reduction only costs
+                dr.scatter_add(out, val, c["base"] + k, active=inside,
+                               mode=dr.ReduceMode.Direct)
+                return ()
+
+            _voxel_loop(plan, lane, col, (), step)
+
+        _capacity_lanes(plan, n_cols, plan.totals and plan.totals[0], lanes)
         dr.eval(out)   # one chunk at a time: bounded memory
     return out
 
@@ -527,27 +568,36 @@ class _VoxelizeOp(dr.CustomOp):
         ga = [dr.zeros(Float, n) for _ in range(6)]
         grho = dr.zeros(Float, n)
         mode = dr.ReduceMode.Local   # neighbouring slices mostly share their Gaussian
-        for ids, skip, n_slices in self.plan.slice_chunks:
-            lane = _slices(self.plan, ids, skip, n_slices, self.p, self.a, self.rho,
-                           _pack_chunk(self.plan, ids, self.p, self.a, self.rho))
-            g, dx, r = lane["g"], lane["dx"], lane["rho"]
+        plan = self.plan
+        for ids, skip, n_slices in plan.slice_chunks:
+            packed = _pack_chunk(plan, ids, self.p, self.a, self.rho)
+            segments = _capacity_segments(plan, plan.nslice, ids, skip, n_slices, packed)
 
-            def step(c, k, dz, m2, inside, sp, sa, sr):
-                dy = c["dy"]
-                ad, e = _terms(lane, c, dz, m2, inside)
-                gv = dr.gather(Float, go, c["base"] + k, inside)
-                w = gv * r * e
-                # d val/d p = val A d; d val/d A_ij = -1/2 val d_i d_j (x2 off the diagonal)
-                sp = tuple(acc + w * x for acc, x in zip(sp, ad))
-                sa = tuple(acc + w * x for acc, x in zip(sa, (
-                    -0.5 * dx * dx, -dx * dy, -dx * dz, -0.5 * dy * dy, -dy * dz, -0.5 * dz * dz)))
-                return sp, sa, sr + gv * e
+            def lanes():
+                lane = _slices(plan, ids, skip, n_slices, self.p, self.a, self.rho, packed,
+                               segments)
+                g, dx, r = lane["g"], lane["dx"], lane["rho"]
 
-            zero = dr.zeros(Float, dr.width(g))
-            sp, sa, sr = _column_loop(self.plan, lane, ((zero,) * 3, (zero,) * 6, zero), step)
-            # one atomic per slice and parameter (sums over the slice's voxels)
-            for acc, x in zip(gp + ga + [grho], list(sp) + list(sa) + [sr]):
-                dr.scatter_add(acc, x, g, mode=mode)
+                def step(c, k, dz, m2, inside, sp, sa, sr):
+                    dy = c["dy"]
+                    ad, e = _terms(lane, c, dz, m2, inside)
+                    gv = dr.gather(Float, go, c["base"] + k, inside)
+                    w = gv * r * e
+                    # d val/d p = val A d; d val/d A_ij = -1/2 val d_i d_j (x2 off the
+                    # diagonal)
+                    sp = tuple(acc + w * x for acc, x in zip(sp, ad))
+                    sa = tuple(acc + w * x for acc, x in zip(sa, (
+                        -0.5 * dx * dx, -dx * dy, -dx * dz, -0.5 * dy * dy, -dy * dz,
+                        -0.5 * dz * dz)))
+                    return sp, sa, sr + gv * e
+
+                zero = dr.zeros(Float, dr.width(g))
+                sp, sa, sr = _column_loop(plan, lane, ((zero,) * 3, (zero,) * 6, zero), step)
+                # one atomic per slice and parameter (sums over the slice's voxels)
+                for acc, x in zip(gp + ga + [grho], list(sp) + list(sa) + [sr]):
+                    dr.scatter_add(acc, x, g, mode=mode)
+
+            _capacity_lanes(plan, n_slices, plan.totals and plan.totals[1], lanes)
             dr.eval(gp, ga, grho)
         self.set_grad_in("p", mi.Point3f(*gp))
         self.set_grad_in("a", ga)
