@@ -155,6 +155,7 @@ class _Plan:
     max_columns: int      # largest column count of one box
     masked: bool = False  # lanes past the last column / slice (a capacity plan): masked
     totals: tuple = None  # a capacity plan's (columns, slices) totals (mi.UInt32 [1])
+    packed: object = None  # a capacity plan's packed values, shared by both passes
 
 
 #: Boxes with fewer columns than this split their column index in float32 (exact there).
@@ -475,15 +476,18 @@ def _capacity_lanes(plan: _Plan, n: int, total, fn) -> None:
                label="voxelize_capacity")
 
 
-def _capacity_segments(plan: _Plan, units, ids, skip: int, n: int, packed):
-    """A capacity plan's ``_segments``, evaluated with ``packed`` before the conditional
-    of ``_capacity_lanes`` (nothing is evaluated inside it); None elsewhere (the lanes
-    make them, fused into their kernel)."""
+def _chunk_inputs(plan: _Plan, units, ids, skip: int, n: int, p, a, rho):
+    """(packed values, segments) of one chunk. A capacity plan makes both before the
+    conditional of ``_capacity_lanes`` (nothing may be evaluated inside it; the segments'
+    prefix sums run here), and packs once: its column and slice chunks share their ids,
+    so the backward pass reuses the forward's values. Elsewhere the segments are left to
+    the lanes (None; made there, as before)."""
     if not plan.masked:
-        return None
-    segments = _segments(units, ids, skip, n)
-    dr.eval(segments, packed)
-    return segments
+        return _pack_chunk(plan, ids, p, a, rho), None
+    if plan.packed is None:
+        plan.packed = _pack_chunk(plan, ids, p, a, rho)
+        dr.eval(plan.packed)
+    return plan.packed, _segments(units, ids, skip, n)
 
 
 def _forward(plan: _Plan, p, a, rho):
@@ -491,8 +495,7 @@ def _forward(plan: _Plan, p, a, rho):
     out = dr.zeros(Float, int(np.prod(plan.size)))
     packets = _use_packets(plan)
     for ids, skip, n_cols in plan.col_chunks:
-        packed = _pack_chunk(plan, ids, p, a, rho)
-        segments = _capacity_segments(plan, plan.ncol, ids, skip, n_cols, packed)
+        packed, segments = _chunk_inputs(plan, plan.ncol, ids, skip, n_cols, p, a, rho)
 
         def lanes():
             lane, col = _columns(plan, ids, skip, n_cols, p, a, rho, packed, segments)
@@ -570,8 +573,8 @@ class _VoxelizeOp(dr.CustomOp):
         mode = dr.ReduceMode.Local   # neighbouring slices mostly share their Gaussian
         plan = self.plan
         for ids, skip, n_slices in plan.slice_chunks:
-            packed = _pack_chunk(plan, ids, self.p, self.a, self.rho)
-            segments = _capacity_segments(plan, plan.nslice, ids, skip, n_slices, packed)
+            packed, segments = _chunk_inputs(plan, plan.nslice, ids, skip, n_slices, self.p,
+                                             self.a, self.rho)
 
             def lanes():
                 lane = _slices(plan, ids, skip, n_slices, self.p, self.a, self.rho, packed,
