@@ -183,6 +183,64 @@ def test_packet_columns_match_brute_force(rng, monkeypatch):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * np.abs(b).max())
 
 
+class _Caps:
+    """The column and slice lanes of a capacity plan (as frozen_step._PairCapacity)."""
+
+    def __init__(self, cols, slices):
+        self.cols, self.slices = cols, slices
+        self.cols_total = self.slices_total = None
+
+
+@pytest.mark.parametrize("z", [8, 7])           # packet columns (LLVM) and per-voxel ones
+def test_capacity_block_equals_the_traced_plan(rng, z):
+    """A recorded step's TV block (``voxelize_block_capacity``: one chunk of capacity
+    lanes over every Gaussian, the lanes past the counts skipped by a conditional) gives
+    the traced plan's volume and gradients, with no spare lane, a few (the last SIMD
+    packet mixed) and far more lanes than the counts; it returns the counts."""
+    threads = dr.thread_count()
+    dr.set_thread_count(1)        # float atomics in one order: both paths bit for bit
+    try:
+        geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(16, 16),
+                       sDetector=(4.0, 4.0), nVoxel=(14, 12, 16), sVoxel=(2.0, 1.8, 2.2),
+                       offOrigin=(0.1, 0.05, -0.1), angles=[0.3])
+        params = make_params(rng, 40, geo)
+        ds = mi.Float(rng.uniform(0.5, 2.0, 40).astype(np.float32))
+        start, size = (3, 2, 5), (9, 8, z)
+        y = mi.Float(rng.normal(size=int(np.prod(size))).astype(np.float32))
+
+        def run(caps=None):
+            g = to_gaussians(params)
+            dr.enable_grad(g.positions, g.scales, g.rotations, g.densities)
+            if caps is None:
+                vol = voxelize_dr(g, geo, block=(start, size), density_scale=ds)
+            else:
+                vol = voxelizer.voxelize_block_capacity(
+                    g, geo, [mi.Int32(s) for s in start], size, DEFAULT_EXTENT, ds, caps)
+            dr.backward(dr.sum(vol.array * y))
+            grads = [np.asarray(dr.grad(c)) for v in (g.positions, g.scales, g.rotations)
+                     for c in v] + [np.asarray(dr.grad(g.densities))]
+            return np.asarray(vol.array), grads
+
+        vol, grads = run()
+        counts = _Caps(1, 1)
+        run(counts)
+        cols, slices = int(counts.cols_total[0]), int(counts.slices_total[0])
+        g = to_gaussians(params)
+        plan = voxelizer._plan(g.positions, g.scales, g.rotations, geo, start, size,
+                               DEFAULT_EXTENT, voxelizer.DEFAULT_CHUNK_PAIRS)
+        assert cols == sum(c[2] for c in plan.col_chunks) > 0
+        assert slices == sum(c[2] for c in plan.slice_chunks) > 0
+        for extra in (0, 3, 5 * cols):
+            caps = _Caps(cols + extra, slices + extra)
+            v, gr = run(caps)
+            np.testing.assert_array_equal(v, vol)
+            for a, b in zip(gr, grads):
+                np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7 * np.abs(b).max())
+            assert int(caps.cols_total[0]) == cols and int(caps.slices_total[0]) == slices
+    finally:
+        dr.set_thread_count(threads)
+
+
 def test_density_scale_scales_densities(geo, rng):
     params = make_params(rng, 7, geo)
     s = rng.uniform(0.2, 3.0, 7)
