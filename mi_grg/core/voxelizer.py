@@ -252,10 +252,11 @@ def _plan(positions, scales, rotations, geometry, start, size, extent, chunk_pai
 def capacity_plan(positions, scales, rotations, geometry, start, size, extent, caps) -> _Plan:
     """The pair plan of a recorded training step: no host read. ``start``: 3 device
     mi.Int32 [1]; one chunk of ``caps.cols`` column lanes (``caps.slices`` slice lanes
-    backward) over every Gaussian, the lanes past the boxes' columns (slices) masked;
-    their totals left on the device in ``caps.cols_total`` / ``caps.slices_total`` for
-    the caller (past the capacity, pairs are missing). Boxes are clipped to the block,
-    so a box's columns never exceed size[0] size[1] (the float32 division's bound)."""
+    backward) over every Gaussian, the lanes past the boxes' columns (slices) skipped
+    (``_capacity_lanes``); their totals left on the device in ``caps.cols_total`` /
+    ``caps.slices_total`` for the caller (past the capacity, pairs are missing). Boxes
+    are clipped to the block, so a box's columns never exceed size[0] size[1] (the
+    float32 division's bound)."""
     lo, nn, x0, d = _boxes(positions, scales, rotations, geometry, start, size, extent)
     UInt32 = mi.UInt32
     nslice = dr.select((nn[1] == 0) | (nn[2] == 0), 0, nn[0])

@@ -15,14 +15,16 @@ near-source records, the voxelizer's pair plan); a recording cannot. Here they a
 capacities fixed when the step is recorded: ``rows`` (record, row) lanes and ``near``
 near-source record slots (none until one is seen) for the projection (``RowCapacity``),
 ``cols`` column and ``slices`` slice lanes for the TV block
-(``voxelizer.capacity_plan``); lanes past the counts are masked. The counts come back
+(``voxelizer.capacity_plan``). The lanes past the counts are the tail of each launch and
+run inside a symbolic conditional, so whole SIMD packets of them skip their work (a
+masked lane costs about a real one's set-up otherwise). The counts come back
 with the result; a count past its capacity discards the result, the iteration runs
 traced, the capacity grows and the next call records anew. Each kind of event is said once (``FrozenStep.note``).
 Recordings are keyed by the Gaussian count, the graph's sizes and the capacities:
 densification and graph rebuilds record anew.
 
 Exact: the recorded step evaluates the same expressions as the traced one; only the lane
-counts differ (masked lanes add zeros). docs/frozen_step.md lists the traced step's host
+counts differ (lanes past the counts add nothing). docs/frozen_step.md lists the traced step's host
 reads and where each went.
 """
 from __future__ import annotations
