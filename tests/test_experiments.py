@@ -164,10 +164,11 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     raw["method_options"] = {"gr": {"iterations": 2, "n_points": 300, "holdout_every": 0}}
     suite.write_text(json.dumps(raw))
     out = tmp_path / "out"
-    assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 1
+    # gr and its paper-configuration row (gr-paper)
+    assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 2
     run_dir = out / "table1" / "shepp" / "gr"
     assert stale_options(run_dir) == []
-    assert run_experiment("table1", suite, out, dry_run=True)["done before"] == 1
+    assert run_experiment("table1", suite, out, dry_run=True)["done before"] == 2
     m = json.loads((run_dir / "metrics.json").read_text())
     m["method_info"]["config"]["tv_every"] += 1       # as if run under another default
     (run_dir / "metrics.json").write_text(json.dumps(m))
@@ -401,8 +402,9 @@ def test_longest_runs_are_started_first(tmp_path):
     cost = {(s.case.name, s.method): expected_cost(s, out) for s in specs}
     assert cost[("blob", "gr")] == pytest.approx(1.75) and cost[("shepp", "r2")] == 1.25
     assert cost[("blob", "sart")] > cost[("blob", "fdk")] == 0.0
-    order = [(s.case.name, s.method) for s in sorted(specs, key=lambda s: -expected_cost(s, out))]
-    assert order[:4] == [("blob", "r2"), ("blob", "gr"), ("shepp", "r2"), ("shepp", "gr")]
+    order = [(s.case.name, s.run) for s in sorted(specs, key=lambda s: -expected_cost(s, out))]
+    assert order[:6] == [("blob", "r2"), ("blob", "gr"), ("blob", "gr-paper"),
+                         ("shepp", "r2"), ("shepp", "gr"), ("shepp", "gr-paper")]
     assert {m for _, m in order[-2:]} == {"fdk"}
     nostop = [s for s in plan_experiment("iterations", suite) if s.run.endswith("nostop")]
     assert nostop and expected_cost(nostop[0], out) > cost[(nostop[0].case.name, "gr")]
@@ -421,8 +423,8 @@ def test_repo_suites_are_valid():
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
     t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
-    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, r2, gr
-    assert len(t1) == 8 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, r2, gr, gr-paper
+    assert len(t1) == 9 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
 
@@ -466,7 +468,8 @@ def test_seeds_plan_shares_seed_0_with_table1(tmp_path):
     t1 = {s.run: s for s in plan_experiment("table1", suite) if s.case.name == "shepp"}
     assert runs["gr_s0"].key() == t1["gr"].key() != runs["gr_s4"].key()
     res = run_experiment("all", path, tmp_path / "out", dry_run=True)
-    assert res["duplicate"] == 2 and res["todo"] == 2 * 2 + 2     # table1 (2 cases) + s4
+    # table1 (r2, gr, gr-paper on 2 cases) + the two s4 runs
+    assert res["duplicate"] == 2 and res["todo"] == 3 * 2 + 2
 
 
 def test_unknown_experiment_key_is_an_error(tmp_path):

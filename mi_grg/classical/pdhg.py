@@ -36,8 +36,8 @@ import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry
 from mi_grg.core.joseph import JosephProjector
-from mi_grg.classical.iterative import (_check_inputs, _fixed, _one, _progress, _to_numpy,
-                                        weight_grid)
+from mi_grg.classical.iterative import (_check_inputs, _fixed, _initial, _one, _progress,
+                                        _to_numpy, weight_grid)
 from mi_grg.core.joseph import forward_project
 from mi_grg.protocol.heldout import run_heldout
 
@@ -48,6 +48,8 @@ STEP_SAFETY = 0.99
 #: sigma ||K||: sigma / tau = gamma^2. Measured on shepp 64^3 in load_case's normalised units
 #: (docs/bench/fair_baselines.md); the balance depends on the length unit.
 DEFAULT_GAMMA = 0.3
+#: Projected-gradient steps that fit a warm start's TV dual (``PDHG._warm_duals``).
+WARM_DUAL_ITERATIONS = 200
 #: Iterations of ``stop="none"`` when n_iter is not given.
 FIXED_ITERATIONS = 100
 #: Cap on iterations per candidate under ``stop="heldout"``.
@@ -133,7 +135,7 @@ class PDHG:
 
     def __init__(self, proj: np.ndarray, geometry: Geometry, angles: np.ndarray, *,
                  lam: float, upper=None, gamma: float = DEFAULT_GAMMA, norm_A=None,
-                 power_iters: int = 8, nonneg: bool = True):
+                 power_iters: int = 8, nonneg: bool = True, init=None):
         if not (math.isfinite(lam) and lam >= 0):
             raise ValueError(f"lam must be a finite number >= 0, got {lam}")
         if not (math.isfinite(gamma) and gamma > 0):
@@ -156,10 +158,38 @@ class PDHG:
         self.lam_abs = float(lam) * float(dr.max(atb, mode="evaluated")[0])
         self.upper, self.nonneg = upper, nonneg
         n = self.A.n_vox
-        self.x = dr.zeros(mi.Float, n)
-        self.xb = dr.zeros(mi.Float, n)
+        # a warm start (a volume [x, y, z]) is moved into the box first: x must be feasible
+        self.x = self._clip(_initial(init, proj, geometry, angles, n))
+        self.xb = mi.Float(self.x)
         self.y1 = dr.zeros(mi.Float, dr.width(self.b))
         self.y2 = [dr.zeros(mi.Float, n) for _ in range(3)]
+        if init is not None and not (isinstance(init, str) and init == "zeros"):
+            self._warm_duals()
+
+    def _warm_duals(self):
+        """Duals at their fixed point for the current x: y1 = A x - b (the data term's),
+        y2 = bound D x / |D x| (the TV term's, 0 where flat). From zero duals a warm start
+        first moves x by a TV flow with no data term to balance it, which a held-out
+        decision sees as a transient loss of the start's quality."""
+        self.y1 = self.A.forward(self.x, self.angles) - self.b
+        g = gradient(self.x, self.shape)
+        norm = dr.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+        bound = self.lam_abs / self.mu
+        scale = dr.select(norm > 0, bound / dr.maximum(norm, 1e-30), 0.0)
+        y2 = [g[a] * scale for a in range(3)]
+        # Where the volume is nearly flat that guess is arbitrary; move y2 towards the
+        # primal optimality condition mu div y2 = A^T y1 (projected gradient, |y2| <= bound)
+        aty = self.A.adjoint(self.y1, self.angles)
+        t = 1.0 / (self.mu * self.mu * GRAD_NORM * GRAD_NORM)
+        for _ in range(WARM_DUAL_ITERATIONS):
+            d = gradient(self.mu * divergence(y2, self.shape) - aty, self.shape)
+            z = [y2[a] + t * self.mu * d[a] for a in range(3)]
+            n = dr.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2])
+            shrink = dr.select(n > bound, bound / dr.maximum(n, 1e-30), 1.0)
+            y2 = [z[a] * shrink for a in range(3)]
+            dr.eval(y2)
+        self.y2 = y2
+        dr.eval(self.y1, self.y2)
 
     def _clip(self, x):
         if self.nonneg:
@@ -210,7 +240,7 @@ class PDHG:
 
 def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATIONS,
          lam: float = FIXED_LAM, upper=None, gamma: float = DEFAULT_GAMMA,
-         nonneg: bool = True, norm_A=None,
+         nonneg: bool = True, norm_A=None, init=None,
          power_iters: int = 8, progress: bool = True, callback=None) -> np.ndarray:
     """Chambolle-Pock TV reconstruction (see the module docstring).
 
@@ -223,6 +253,8 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
         gamma: sigma ||K||, the primal/dual step balance (sigma tau ||K||^2 = 0.99).
         nonneg: clip negative densities (the constraint x >= 0).
         norm_A: ||A|| if known (skips the power iteration of ``power_iters`` steps).
+        init: the starting volume: None / "zeros", "fdk", or a volume [x, y, z] (clipped
+            to the box).
         progress: tqdm bar on stderr.
         callback: optional ``f(iteration, volume numpy [x, y, z])`` after every iteration;
             a true return value ends the run.
@@ -231,7 +263,7 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
     """
     a, p = _check_inputs(proj, geometry, angles, n_iter)
     solver = PDHG(p, geometry, a, lam=float(lam), upper=upper, gamma=gamma, norm_A=norm_A,
-                  power_iters=power_iters, nonneg=nonneg)
+                  power_iters=power_iters, nonneg=nonneg, init=init)
     with _progress(int(n_iter), "PDHG", progress) as bar:
         for it in range(int(n_iter)):
             solver.step()
@@ -245,7 +277,7 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
 def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamma=None,
                      upper=None, nonneg: bool = True, power_iters: int = 8,
                      eval_every: int = EVAL_EVERY, holdout_every=None, oracle=None,
-                     progress: bool = True):
+                     start=None, final: bool = True, progress: bool = True):
     """The ``--method pdhg`` entry point: Chambolle-Pock TV of ``case.train``.
 
     Options: stop ("heldout": the iteration count and lam are chosen on held-out views by
@@ -255,7 +287,10 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), gamma
     (primal/dual step balance, DEFAULT_GAMMA), upper (None), nonneg (True), power_iters
     (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
-    ground truth exists), progress. Returns float32 [x, y, z] (and, under "heldout", what
+    ground truth exists), start (None; or, to refine another method's result under
+    "heldout", the volumes [x, y, z] the decision runs and the final run start from:
+    ``run_heldout``'s ``start``), final (False: decide only, the volume is None),
+    progress. Returns float32 [x, y, z] (and, under "heldout", what
     was decided); unknown options raise.
     """
     gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
@@ -270,6 +305,8 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
                     **kw)
 
     if _fixed(stop, holdout_every, oracle, "pdhg"):
+        if start is not None:
+            raise ValueError("pdhg: start (a refinement's start volumes) needs stop='heldout'")
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
         return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
                    else n_iter, lam=lm, progress=progress)
@@ -277,7 +314,8 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     vol, info = run_heldout(case, run, grid, project=forward_project, name="pdhg",
                             eval_every=eval_every,
                             max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,
-                            holdout_every=holdout_every, oracle=oracle, progress=progress)
+                            holdout_every=holdout_every, oracle=oracle, start=start,
+                            final=final, progress=progress)
     info["norm_A"] = {"fitted_views": norms.get(np.asarray(
         case.geometry.angles, np.float64)[info["decision_views"]].tobytes()),
         "all_views": norms.get(np.asarray(case.geometry.angles, np.float64).tobytes()),

@@ -79,6 +79,7 @@ class _Decision:
     held: np.ndarray
     eval_every: int
     discrepancy: bool
+    start: tuple | None = None   # (decision runs' start volume, final run's) or None
 
     def __post_init__(self):
         geo = self.case.geometry
@@ -109,9 +110,13 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
         return stopper.update(sweep, float(np.nanmean(views))) == "stop"
 
     t0 = time.perf_counter()
+    warm = {}
+    if d.start is not None:     # the start is sweep 0: a candidate may keep it unchanged
+        judge(-1, d.start[0])
+        warm = {"init": d.start[0]}
     run(d.fit_data, d.geo_fit, n_iter=int(max_sweeps), callback=judge, progress=progress,
-        **setting)
-    if stopper.kept_iteration < 1:
+        **setting, **warm)
+    if stopper.kept_iteration < (0 if d.start is not None else 1):
         raise ValueError(f"{name}: no held-out evaluation in {last[0]} iteration(s) "
                          f"(eval_every={d.eval_every}); raise n_iter")
     values = dict(stopper.history)
@@ -131,11 +136,14 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
     return c
 
 
-def _choose(candidates: list, discrepancy: bool, one_se: bool = False):
+def _choose(candidates: list, discrepancy: bool, one_se: bool = False,
+            from_start: bool = False):
     """(index of the chosen candidate, noise level or None). With ``discrepancy`` each
     candidate's sweep becomes its discrepancy sweep where its residual reaches the noise
     level (re-judged whenever candidates are added: the level is a minimum over all).
-    With ``one_se`` the choice is the one-standard-error rule (``_one_se``)."""
+    With ``one_se`` the choice is the one-standard-error rule (``_one_se``). With
+    ``from_start`` (runs from a given start) a candidate kept at sweep 0 is the start
+    itself, whatever its weight: it ranks below every candidate that regularised it."""
     noise = None
     if discrepancy:
         noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
@@ -144,7 +152,9 @@ def _choose(candidates: list, discrepancy: bool, one_se: bool = False):
             c["discrepancy_sweep"] = k
             c["kept_sweep"] = k if k is not None else c["rule_sweep"]
             c["heldout_psnr"] = dict(map(tuple, c["history"]))[c["kept_sweep"]]
-    order = sorted(range(len(candidates)), key=lambda i: _sort_key(candidates[i]["setting"]))
+    order = sorted(range(len(candidates)), key=lambda i: (
+        bool(candidates[i]["kept_sweep"]) or not from_start,
+        _sort_key(candidates[i]["setting"])))
     best = max(order, key=lambda i: (candidates[i]["heldout_psnr"], -order.index(i)))
     return (_one_se(candidates, order, best) if one_se else best), noise
 
@@ -184,8 +194,11 @@ def _decide(d: _Decision, run, grid, rule, max_sweeps, name, progress):
         for setting in pending:
             candidates.append(_decision_run(d, run, setting, rule, max_sweeps, name,
                                             progress))
-        chosen, noise = _choose(candidates, d.discrepancy, bool(search and search.one_se))
+        chosen, noise = _choose(candidates, d.discrepancy, bool(search and search.one_se),
+                                d.start is not None)
         winner = candidates[chosen]["setting"].get(search.name) if search else None
+        if d.start is not None and candidates[chosen]["kept_sweep"] == 0:
+            winner = None       # the start itself won: no weight to search past
         nxt = search.next_value(winner) if search else None
         pending = [] if nxt is None else [{search.name: nxt}]
     record = search.record(candidates[chosen]["setting"][search.name]) if search else None
@@ -193,12 +206,19 @@ def _decide(d: _Decision, run, grid, rule, max_sweeps, name, progress):
 
 
 def _final_run(case, run, pick: dict, max_sweeps: int, eval_every: int, scoring: bool,
-               progress: bool):
-    """The chosen setting for its sweep count on every view; with ``scoring`` (the oracle)
-    the run goes on past it, scoring the 3-D PSNR of each sweep. Returns (volume at the
-    chosen sweep, its seconds without scoring, total seconds, oracle curve)."""
+               progress: bool, start=None):
+    """The chosen setting for its sweep count on every view (from ``start`` when given;
+    0 sweeps return it unchanged); with ``scoring`` (the oracle) the run goes on past it,
+    scoring the 3-D PSNR of each sweep. Returns (volume at the chosen sweep, its seconds
+    without scoring, total seconds, oracle curve)."""
     k = int(pick["kept_sweep"])
+    warm = {} if start is None else {"init": start}
+    if k == 0 and not scoring:
+        return np.asarray(start, np.float32), 0.0, 0.0, []
     kept, curve, spent, t_kept = {}, [], [0.0], [None]
+    if k == 0:
+        kept["vol"], t_kept[0] = np.asarray(start, np.float32), 0.0
+        curve.append((0, float(psnr_3d(start, case.vol_gt))))
     t0 = time.perf_counter()
 
     def final(it, vol):
@@ -220,7 +240,7 @@ def _final_run(case, run, pick: dict, max_sweeps: int, eval_every: int, scoring:
 
     cap = int(max_sweeps) if scoring else k
     vol = run(case.train, case.geometry, n_iter=max(k, cap), callback=final,
-              progress=progress, **pick["setting"])
+              progress=progress, **pick["setting"], **warm)
     total = time.perf_counter() - t0
     if "vol" not in kept:       # the method's own convergence test ended the run first
         kept["vol"], t_kept[0] = vol, total - spent[0]
@@ -244,9 +264,21 @@ def _why(pick: dict, held: list, n_candidates: int, noise, k: int, n_views: int)
             f"on all {n_views} views for {k} sweep(s)")
 
 
+def _check_args(name, grid, max_sweeps, eval_every, start) -> None:
+    if int(max_sweeps) < 1:
+        raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
+    if int(eval_every) < 1:
+        raise ValueError(f"eval_every must be >= 1, got {eval_every}")
+    if not isinstance(grid, LogGrid) and not grid:
+        raise ValueError(f"{name}: the grid of settings is empty")
+    if start is not None and len(start) != 2:
+        raise ValueError(f"{name}: start must be (decision volume, final volume)")
+
+
 def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
                 eval_every: int = 1, holdout_every: int | None = None, oracle=None,
-                discrepancy: bool = False, progress: bool = True):
+                discrepancy: bool = False, start=None, final: bool = True,
+                progress: bool = True):
     """The protocol of the module docstring for one method.
 
     Args:
@@ -265,29 +297,31 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
         oracle: score 3-D PSNR of the final run's sweeps (None: when a ground truth exists).
         discrepancy: the sweep count by the discrepancy principle with the noise level
             estimated on the held-out views (step 3; for semi-convergent methods).
+        start: None, or (decision start, final start): volumes [x, y, z] that ``run``
+            starts from (its ``init`` option), for refining another method's result. The
+            decision runs' start must not have been fitted to the held-out views. The
+            start itself is a candidate (sweep 0: kept unchanged).
+        final: False stops after the decision (steps 1-4) and returns (None, info).
     Returns:
         (volume [x, y, z] float32, info dict for metrics.json).
     """
     rule = STOP_RULE if holdout_every is None else StopRule(holdout_every=int(holdout_every))
-    if int(max_sweeps) < 1:
-        raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
-    if int(eval_every) < 1:
-        raise ValueError(f"eval_every must be >= 1, got {eval_every}")
-    if not isinstance(grid, LogGrid) and not grid:
-        raise ValueError(f"{name}: the grid of settings is empty")
+    _check_args(name, grid, max_sweeps, eval_every, start)
     scoring = oracle if oracle is not None else case.vol_gt is not None
     if scoring and case.vol_gt is None:
         raise ValueError(f"{name}: oracle=True needs a ground truth (vol_gt.npy)")
     fit, held = decision_split(case.geometry.n_views, rule.holdout_every, name)
-    d = _Decision(case, project, fit, held, int(eval_every), discrepancy)
+    d = _Decision(case, project, fit, held, int(eval_every), discrepancy,
+                  None if start is None else tuple(start))
     t_start = time.perf_counter()
     candidates, chosen, noise, search = _decide(d, run, grid, rule, max_sweeps, name,
                                                 progress)
     pick = candidates[chosen]
     decision_seconds = time.perf_counter() - t_start
     k = int(pick["kept_sweep"])
-    vol, final_seconds, total_final, curve = _final_run(case, run, pick, max_sweeps,
-                                                        int(eval_every), scoring, progress)
+    vol, final_seconds, total_final, curve = _final_run(
+        case, run, pick, max_sweeps, int(eval_every), scoring, progress,
+        None if start is None else start[1]) if final else (None, 0.0, 0.0, [])
     n = int(case.geometry.n_views)
     info = {
         "protocol": "heldout",

@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import AUTO_FIELDS, BOOKKEEPING, TrainConfig
+from mi_grg.training.config import AFTER_TRAINING, AUTO_FIELDS, BOOKKEEPING, TrainConfig
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -36,7 +36,7 @@ CHECKPOINT_NAME = "checkpoint.npz"
 # must not be listed, so that such runs count as stale and such checkpoints do not resume.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
                "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk",
-               "frozen_step": False}
+               "frozen_step": False, "refine": "none"}
 
 
 def upgrade_config_dict(values: dict) -> dict:
@@ -128,8 +128,8 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     """Read a checkpoint written by ``save_checkpoint`` (of this or an earlier version):
     restores ``optimizer``, ``densifier`` and ``stopper`` through load_state_dict() and
     returns the ``TrainState``. A checkpoint of another config is an error that names the
-    differing fields (resuming must continue the same run); ``BOOKKEEPING`` fields may
-    differ."""
+    differing fields (resuming must continue the same run); ``BOOKKEEPING`` and
+    ``AFTER_TRAINING`` fields may differ."""
     with _open(path) as f:
         meta = _meta(f, path)
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
@@ -137,7 +137,8 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
         used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
         want = cfg.to_flat()
         changed = sorted(k for k in set(used) | set(want)
-                         if used.get(k) != want.get(k) and k not in BOOKKEEPING)
+                         if used.get(k) != want.get(k)
+                         and k not in BOOKKEEPING + AFTER_TRAINING)
         if changed:
             raise ValueError(f"checkpoint {path} was made with a different config "
                              f"(differs in {changed}); resume with the same options")

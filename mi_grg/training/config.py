@@ -43,15 +43,26 @@ AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
 #: (``mi_grg.lab.staleness.stale_keys``).
 BOOKKEEPING = ("checkpoint_every", "frozen_step")
 
-# Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off.
+#: Fields that act only after training (on the returned state): a resume may change them,
+#: since no checkpointed state depends on them, but a finished run is stale for them.
+AFTER_TRAINING = ("refine",)
+
+# Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
+# without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
 PRESETS = {
     "gr": {},
-    "r2": {"sigma_d": 0.0, "use_pga": False, "use_graph_field": False, "lambda_lap": 0.0},
+    "r2": {"sigma_d": 0.0, "use_pga": False, "use_graph_field": False, "lambda_lap": 0.0,
+           "refine": "none"},
 }
 
 
 #: The volumes De-Init can start from (``DeInit.init``).
 INIT_VOLUMES = ("fdk", "pdhg")
+
+#: What runs after training (``Protocol.refine``): "none", or "tv": a data-consistent
+#: total-variation refinement of the voxelised result whose weight and length the
+#: held-out views choose (``mi_grg.training.refine``).
+REFINE_MODES = ("none", "tv")
 
 #: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
@@ -186,6 +197,12 @@ class Protocol:
     keep_state: str = STOP_RULE.keep  # state kept: "latest" within the stop margin of the best
                                    # held-out PSNR, or "best" (why: mi_grg.protocol.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
+    refine: str = "tv"             # after training: "tv" refines the voxelised result by
+                                   # TV-regularised least squares (PDHG started from it),
+                                   # its weight and iterations chosen on the held-out views
+                                   # (mi_grg.training.refine; why the default:
+                                   # docs/benchmarks.md, "TV refinement"); "none": the
+                                   # field as trained (the paper, R2-Gaussian)
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
                                    # (no effect on training); None: at each held-out
@@ -288,6 +305,9 @@ def _validate(c: dict) -> None:
     if c["init"] not in INIT_VOLUMES:
         raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
                           f"{c['init']!r}")
+    if c["refine"] not in REFINE_MODES:
+        raise ConfigError(f"refine must be one of {', '.join(REFINE_MODES)}, got "
+                          f"{c['refine']!r}")
     if c["keep_state"] not in KEEP_STATES:
         raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                           f"got {c['keep_state']!r}")

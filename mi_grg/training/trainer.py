@@ -736,6 +736,10 @@ def _train_method(method: str):
         trainer = Trainer(case, cfg, out_dir=out_dir, progress=progress, resume=resume)
         summary = trainer.run()
         summary["config"] = cfg.to_flat()
+        if cfg.protocol.refine == "tv":
+            from mi_grg.training.refine import refine_tv
+            vol, summary["refine"] = refine_tv(trainer, progress)
+            return vol, summary
         return trainer.volume(), summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "
