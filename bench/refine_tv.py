@@ -72,14 +72,15 @@ def run_case(name: str, suite, data_root: Path, runs: Path, options: dict) -> di
         vol, r = refine_volume(case, np.load(folder / "kept.npy"), final,
                                holdout_every=info.get("holdout_every", 8), progress=False)
     else:   # what refine="tv" does without held-out views: nothing (it says so)
-        vol, r = final, {"lam": 0.0, "iterations": 0,
-                         "heldout_psnr": {"start": float("nan"), "refined": float("nan")}}
+        vol, r = final, {"lam": 0.0, "iterations": 0, "noise_mse": float("nan"),
+                         "heldout_mse": {"start": float("nan"), "refined": float("nan")}}
     seconds = time.perf_counter() - t0
     peak = data_range(case, case.vol_gt)[0]
     before, after = score(final, case.vol_gt, peak), score(vol, case.vol_gt, peak)
     return {"case": name, "gr": before["psnr_3d"], "gr_refined": after["psnr_3d"],
             "ssim": {"gr": before["ssim_3d"], "gr_refined": after["ssim_3d"]}, "lam": r["lam"],
-            "iterations": r["iterations"], "heldout_psnr": r["heldout_psnr"],
+            "iterations": r["iterations"], "heldout_mse": r["heldout_mse"],
+            "noise_mse": r["noise_mse"], "weight_candidates": r.get("weight_candidates"),
             "gr_seconds": info["seconds"], "refine_seconds": seconds,
             "loadavg_1min": {"gr": info.get("loadavg_1min"), "refine": load},
             "options": info.get("options", {}),
@@ -91,20 +92,25 @@ def markdown(rows: list, best: dict) -> str:
              "Cases of experiments/suite_cpu.json (64^3, 96^2 detector, 25 noisy views), the "
              "data sets of bench/fair_baselines.py. *best classical*: the best held-out row "
              "of SART, ASD-POCS and PDHG in [fair_baselines.md](fair_baselines.md). lam and "
-             "iterations: the refinement's decisions (PDHG's one-SE weight; iterations from "
-             "the kept state, 0 = unchanged), both on held-out views. Time: seconds on a "
-             "2-core machine shared with other work (load in the JSON).", "",
+             "iterations: the refinement's decisions from the kept state on the fitted "
+             "views (lam: Morozov's rule, the largest weight whose settled fitted residual "
+             "is at most the noise level measured on the held-out views; iterations: the "
+             "lowest held-out residual, 0 = unchanged). Held-out MSE: refined / start "
+             "(below 1: the refinement predicts the held-out views better). Time: seconds "
+             "on a 2-core machine (1-minute load average at each run's start in the JSON).",
+             "",
              "| case | gr | gr + refine | best classical | margin gr / gr + refine (dB) | lam | "
-             "iterations | held-out PSNR start -> refined | time gr + refine (s) | code |",
+             "iterations | held-out MSE refined / start | time gr + refine (s) | code |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b = best[r["case"]]
-        h = r["heldout_psnr"]
+        h = r.get("heldout_mse")      # rows of an earlier rule have none
+        ratio = f"{h['refined'] / h['start']:.3f}" if h else "-"
         opts = ", ".join(f"{k}={v}" for k, v in r.get("options", {}).items())
         lines.append(
             f"| {r['case']}{f' ({opts})' if opts else ''} | {r['gr']:.2f} | {r['gr_refined']:.2f} | {b[1]:.2f} ({b[0]}) | "
             f"{r['gr'] - b[1]:+.2f} / {r['gr_refined'] - b[1]:+.2f} | {r['lam']:g} | "
-            f"{r['iterations']} | {h['start']:.2f} -> {h['refined']:.2f} | "
+            f"{r['iterations']} | {ratio} | "
             f"{r['gr_seconds']:.0f} + {r['refine_seconds']:.0f} | {r['code']} |")
     if rows:
         m = [r["gr"] - best[r["case"]][1] for r in rows]

@@ -86,7 +86,7 @@ def test_one_standard_error_rule_takes_the_largest_weight_the_views_cannot_tell_
                 break
         return vol
 
-    grid = LogGrid("lam", [0.001, 0.003, 0.01], max_extend=3, one_se=True)
+    grid = LogGrid("lam", [0.001, 0.003, 0.01], max_extend=3, rule="one_se")
     _, info = run_heldout(case, run, grid, project=forward_project, max_sweeps=3, name="t",
                           progress=False)
     cands = {c["setting"]["lam"]: c for c in info["candidates"]}
@@ -105,6 +105,68 @@ def test_one_standard_error_rule_takes_the_largest_weight_the_views_cannot_tell_
                            progress=False)
     assert plain["chosen"]["setting"]["lam"] == min(plain["search"]["values_tried"])
     assert not plain["search"]["interior"] and plain["search"]["added_below"] == 3
+
+
+def _candidate(lam, residuals):
+    """A decision run's record: residuals [sweep, held-out MSE, fitted-view MSE]."""
+    return {"setting": {"lam": lam}, "residuals": [list(r) for r in residuals],
+            "history": [[s, -10 * math.log10(h)] for s, h, _ in residuals]}
+
+
+def test_morozov_takes_the_largest_weight_that_fits_the_data_to_their_noise():
+    """Hand-made runs from one start (sweep 0): the noise level is the lowest held-out
+    residual of any state (0.9 here, lam 0.003's sweep 10); the settled fitted residuals
+    0.5, 0.8, 1.2 put the cut between 0.003 and 0.01; each weight keeps its sweep of lowest
+    held-out residual, the start included (lam 0.01: its runs only got worse)."""
+    from mi_grg.protocol.heldout import _choose
+    start = (0, 1.0, 1.1)
+    cands = [_candidate(0.01, [start, (5, 1.05, 1.15), (10, 1.1, 1.2)]),
+             _candidate(0.001, [start, (5, 0.95, 0.7), (10, 0.97, 0.5)]),
+             _candidate(0.003, [start, (5, 0.92, 0.9), (10, 0.9, 0.8)])]
+    chosen, noise = _choose(cands, False, "morozov", from_start=True)
+    assert noise == 0.9
+    assert cands[chosen]["setting"]["lam"] == 0.003 and cands[chosen]["kept_sweep"] == 10
+    assert [c["kept_sweep"] for c in cands] == [0, 5, 10]
+    assert [c["settled_fit_mse"] for c in cands] == [1.2, 0.5, 0.8]
+    assert cands[chosen]["heldout_psnr"] == pytest.approx(-10 * math.log10(0.9))
+    # no weight fits the data to the noise level: the smallest, at its best sweep
+    worse = [_candidate(0.01, [(5, 1.0, 3.0)]), _candidate(0.001, [(5, 2.0, 2.0)])]
+    chosen, noise = _choose(worse, False, "morozov")
+    assert noise == 1.0 and worse[chosen]["setting"]["lam"] == 0.001
+    with pytest.raises(ValueError, match="rule must be one of"):
+        LogGrid("lam", [0.001, 0.01], rule="lowest")
+
+
+def test_morozov_search_widens_past_a_top_weight_that_still_fits():
+    """Every weight of the grid fits the data below the noise level: the search widens
+    upwards until a weight does not, and takes the one below it (interior)."""
+    case, x = small_case()
+    rng = np.random.default_rng(0)
+    case = Case(geometry=case.geometry, vol_gt=None,
+                train=case.train + 0.05 * rng.standard_normal(case.train.shape).astype(
+                    np.float32))
+    ramp = np.linspace(0, 1, 12, dtype=np.float32)[:, None, None] * np.ones((12,) * 3,
+                                                                             np.float32)
+    ran = []
+
+    def run(proj, geo, n_iter, callback, progress, lam):
+        # the residual grows with the weight: a bias of lam x ramp, none below 0.1
+        vol = x + 3.0 * max(lam - 0.1, 0.0) * ramp
+        for it in range(n_iter):
+            ran.append(lam)
+            if callback(it, vol):
+                break
+        return vol
+
+    grid = LogGrid("lam", [0.001, 0.01], max_extend=4, rule="morozov")
+    _, info = run_heldout(case, run, grid, project=forward_project, max_sweeps=4, name="t",
+                          oracle=False, progress=False)
+    s = info["search"]
+    assert s["values_tried"] == pytest.approx([0.001, 0.01, 0.1, 1.0])
+    assert s["chosen"] == pytest.approx(0.1) and s["interior"]
+    assert s["rule"] == "Morozov's discrepancy principle" and "Morozov" in info["why"]
+    assert sum(abs(v - 1.0) < 1e-9 for v in ran) == 4     # every candidate ran to the cap
+    assert info["morozov"]["noise_mse"] == pytest.approx(0.05 ** 2, rel=0.2)
 
 
 def test_weight_search_says_when_its_widening_is_spent():

@@ -84,24 +84,30 @@ def test_start_wins_when_no_sweep_improves_it_and_is_returned_unchanged():
                     project=forward_project, start=(x_true,), progress=False)
 
 
-def test_refinement_removes_voxel_noise_the_views_do_not_constrain():
+@pytest.mark.parametrize("lam_rule", [None, "morozov"])
+def test_refinement_removes_voxel_noise_the_views_do_not_constrain(lam_rule):
     """Ground truth plus voxel-scale noise as the start (what gr leaves on dense volumes):
     PDHG from it, decided on held-out views, gains several dB; from the exact volume with
-    exact data nothing improves the held-out views and the start comes back unchanged."""
+    exact data nothing improves the held-out views and the start comes back unchanged.
+    Both weight rules (refine="tv" uses Morozov's)."""
     case, _ = noisy_ellipsoids(n=24, sigma=0.02)
     gt = case.vol_gt
     noisy = gt + 0.15 * np.random.default_rng(0).standard_normal(gt.shape).astype(np.float32)
-    vol, info = reconstruct_pdhg(case, start=(noisy, noisy), oracle=False, progress=False)
+    vol, info = reconstruct_pdhg(case, start=(noisy, noisy), oracle=False, progress=False,
+                                 lam_rule=lam_rule)
     assert info["chosen"]["sweeps"] > 0
     assert psnr_3d(vol, gt) > psnr_3d(noisy, gt) + 3.0, info["chosen"]
 
     exact = case.__class__(geometry=case.geometry, train=forward_project(gt, case.geometry),
                            vol_gt=gt)
-    vol, info = reconstruct_pdhg(exact, start=(gt, gt), oracle=False, progress=False)
+    vol, info = reconstruct_pdhg(exact, start=(gt, gt), oracle=False, progress=False,
+                                 lam_rule=lam_rule)
     assert info["chosen"]["sweeps"] == 0
     np.testing.assert_array_equal(vol, gt)
     with pytest.raises(ValueError, match="stop='heldout'"):
         reconstruct_pdhg(case, stop="none", start=(gt, gt), progress=False)
+    with pytest.raises(ValueError, match="leaves nothing to choose"):
+        reconstruct_pdhg(case, lam=0.01, lam_rule="morozov", progress=False)
 
 
 def test_gr_refine_option(tiny_case):

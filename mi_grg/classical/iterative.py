@@ -381,11 +381,11 @@ def _as_grid(value, name: str, default) -> list:
     return [float(v) for v in vals]
 
 
-def weight_grid(value, name: str, default):
+def weight_grid(value, name: str, default, rule: str = "one_se"):
     """What ``run_heldout`` searches for one weight: a number fixes it (a list of one
     setting); None (``default``) or a list is a ``LogGrid`` that widens past a winning end
-    until its choice is interior (``mi_grg.protocol.search``), the choice made by the
-    one-standard-error rule (``mi_grg.protocol.heldout``). A list holding 0 (no
+    until its choice is interior (``mi_grg.protocol.search``), the choice made by ``rule``
+    (the one-standard-error rule unless told: ``mi_grg.protocol.heldout``). A list holding 0 (no
     regulariser), which no log grid can widen, is tried as given."""
     vals = _as_grid(value, name, default)
     if value is not None and not isinstance(value, (list, tuple)):
@@ -395,7 +395,7 @@ def weight_grid(value, name: str, default):
             raise ValueError(f"{name}: a grid needs at least two distinct values, got "
                              f"{value!r} (give one number to fix the weight)")
         return [{name: v} for v in vals]
-    return LogGrid(name, vals, max_extend=GRID_EXTEND, one_se=True)
+    return LogGrid(name, vals, max_extend=GRID_EXTEND, rule=rule)
 
 
 def _one(value, name: str) -> float:

@@ -40,6 +40,7 @@ from mi_grg.classical.iterative import (_check_inputs, _fixed, _initial, _one, _
                                         _to_numpy, weight_grid)
 from mi_grg.core.joseph import forward_project
 from mi_grg.protocol.heldout import run_heldout
+from mi_grg.protocol.search import LogGrid
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
 GRAD_NORM = math.sqrt(12.0)
@@ -275,7 +276,7 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
 
 # ---------------------------------------------------------------- reconstruction contract
 def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamma=None,
-                     upper=None, nonneg: bool = True, power_iters: int = 8,
+                     lam_rule=None, upper=None, nonneg: bool = True, power_iters: int = 8,
                      eval_every: int = EVAL_EVERY, holdout_every=None, oracle=None,
                      start=None, final: bool = True, progress: bool = True):
     """The ``--method pdhg`` entry point: Chambolle-Pock TV of ``case.train``.
@@ -284,7 +285,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     gr's rule, evaluated every ``eval_every`` iterations, then run on all views,
     mi_grg.protocol.heldout; "none": n_iter iterations at one lam), n_iter (cap under
     "heldout", HELDOUT_ITERATION_CAP; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
-    under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), gamma
+    under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), lam_rule
+    (how "heldout" chooses lam from a grid: None / "one_se", the one-standard-error rule, or
+    "morozov", Morozov's discrepancy principle: mi_grg.protocol.search.RULES), gamma
     (primal/dual step balance, DEFAULT_GAMMA), upper (None), nonneg (True), power_iters
     (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
     ground truth exists), start (None; or, to refine another method's result under
@@ -305,12 +308,16 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
                     **kw)
 
     if _fixed(stop, holdout_every, oracle, "pdhg"):
-        if start is not None:
-            raise ValueError("pdhg: start (a refinement's start volumes) needs stop='heldout'")
+        if start is not None or lam_rule is not None:
+            raise ValueError("pdhg: start (a refinement's start volumes) and lam_rule need "
+                             "stop='heldout'")
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
         return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
                    else n_iter, lam=lm, progress=progress)
-    grid = weight_grid(lam, "lam", LAM_GRID)
+    grid = weight_grid(lam, "lam", LAM_GRID, "one_se" if lam_rule is None else lam_rule)
+    if lam_rule is not None and not isinstance(grid, LogGrid):
+        raise ValueError(f"pdhg: lam_rule={lam_rule!r} chooses among a grid of lam; lam="
+                         f"{lam!r} leaves nothing to choose")
     vol, info = run_heldout(case, run, grid, project=forward_project, name="pdhg",
                             eval_every=eval_every,
                             max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,

@@ -16,7 +16,10 @@ Protocol (``run_heldout``), never looking at the ground truth:
    fitted views is at most the noise level, and the noise level is estimated on the
    held-out views (``mi_grg.protocol.discrepancy``). A candidate whose residual
    never reaches it keeps the EarlyStopper's sweep.
-4. Choose the setting whose kept state has the highest held-out PSNR.
+4. Choose the setting whose kept state has the highest held-out PSNR (or the largest
+   weight within one standard error of it), or by Morozov's discrepancy principle: the
+   largest weight whose fitted-view residual, where its run settles at the cap, is at most
+   the noise level, each candidate kept at its lowest held-out residual (``_morozov``).
 5. Run the chosen setting for the chosen sweep count on ALL training views (the held-out
    ones included) and return that volume: the decision used held-out views, the result
    uses every view. A sweep over 25 views and one over 21 do about the same
@@ -80,6 +83,7 @@ class _Decision:
     eval_every: int
     discrepancy: bool
     start: tuple | None = None   # (decision runs' start volume, final run's) or None
+    morozov: bool = False        # the weight by Morozov's rule (``_morozov``)
 
     def __post_init__(self):
         geo = self.case.geometry
@@ -102,12 +106,13 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
         if sweep % d.eval_every:
             return False
         pred = d.project(vol, geo, d.angles[d.held])
-        if d.discrepancy:     # [sweep, held-out MSE, fitted-view MSE]
+        if d.discrepancy or d.morozov:     # [sweep, held-out MSE, fitted-view MSE]
             residuals.append([sweep, mse(pred, d.target),
                               mse(d.project(vol, d.geo_fit, d.geo_fit.angles), d.fit_data)])
         views = psnr_proj_views(pred, d.target)
         per_view.append([sweep, views.tolist()])
-        return stopper.update(sweep, float(np.nanmean(views))) == "stop"
+        stop = stopper.update(sweep, float(np.nanmean(views))) == "stop"
+        return stop and not d.morozov     # Morozov reads where the run settles: the cap
 
     t0 = time.perf_counter()
     warm = {}
@@ -130,20 +135,23 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
          "history": [list(h) for h in stopper.history],
          "heldout_psnr_views": per_view,
          "seconds": time.perf_counter() - t0}
-    if d.discrepancy:
+    if d.discrepancy or d.morozov:
         c["residuals"] = residuals
         c["rule_sweep"] = c["kept_sweep"]
     return c
 
 
-def _choose(candidates: list, discrepancy: bool, one_se: bool = False,
+def _choose(candidates: list, discrepancy: bool, rule: str = "best",
             from_start: bool = False):
-    """(index of the chosen candidate, noise level or None). With ``discrepancy`` each
+    """(index of the chosen candidate, noise level or None); ``rule``: a key of
+    ``mi_grg.protocol.search.RULES`` ("morozov": ``_morozov``). With ``discrepancy`` each
     candidate's sweep becomes its discrepancy sweep where its residual reaches the noise
     level (re-judged whenever candidates are added: the level is a minimum over all).
     With ``one_se`` the choice is the one-standard-error rule (``_one_se``). With
     ``from_start`` (runs from a given start) a candidate kept at sweep 0 is the start
     itself, whatever its weight: it ranks below every candidate that regularised it."""
+    if rule == "morozov":
+        return _morozov(candidates)
     noise = None
     if discrepancy:
         noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
@@ -156,7 +164,29 @@ def _choose(candidates: list, discrepancy: bool, one_se: bool = False,
         bool(candidates[i]["kept_sweep"]) or not from_start,
         _sort_key(candidates[i]["setting"])))
     best = max(order, key=lambda i: (candidates[i]["heldout_psnr"], -order.index(i)))
-    return (_one_se(candidates, order, best) if one_se else best), noise
+    return (_one_se(candidates, order, best) if rule == "one_se" else best), noise
+
+
+def _morozov(candidates: list):
+    """(index, noise level): Morozov's discrepancy principle for the weight, the lowest
+    held-out residual for the sweeps. The noise level is the lowest mean squared held-out
+    residual of any state (``noise_level``); the weight is the largest one whose fitted-view
+    residual where its run settled (the last sweep) is at most that level, since a larger
+    one cannot fit the data to their noise; the smallest when none can. Each candidate's
+    state is its sweep with the lowest held-out mean squared residual (the start, sweep 0,
+    included). Why not the held-out PSNR: from a start that already fits the data (a
+    refinement), projections of the held-out views improve while a too weak weight fits
+    noise into directions no view sees; the fitted residual falling below the noise level
+    shows it (docs/benchmarks.md, "TV refinement")."""
+    noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
+    for c in candidates:
+        s, h, _ = min(c["residuals"], key=lambda r: (r[1], r[0]))
+        c["kept_sweep"], c["heldout_mse"] = int(s), h
+        c["heldout_psnr"] = dict(map(tuple, c["history"]))[c["kept_sweep"]]
+        c["settled_fit_mse"] = c["residuals"][-1][2]
+    order = sorted(range(len(candidates)), key=lambda i: _sort_key(candidates[i]["setting"]))
+    fits = [i for i in order if candidates[i]["settled_fit_mse"] <= noise]
+    return (fits[-1] if fits else order[0]), noise
 
 
 def _one_se(candidates: list, order: list, best: int) -> int:
@@ -194,10 +224,10 @@ def _decide(d: _Decision, run, grid, rule, max_sweeps, name, progress):
         for setting in pending:
             candidates.append(_decision_run(d, run, setting, rule, max_sweeps, name,
                                             progress))
-        chosen, noise = _choose(candidates, d.discrepancy, bool(search and search.one_se),
+        chosen, noise = _choose(candidates, d.discrepancy, search.rule if search else "best",
                                 d.start is not None)
         winner = candidates[chosen]["setting"].get(search.name) if search else None
-        if d.start is not None and candidates[chosen]["kept_sweep"] == 0:
+        if d.start is not None and candidates[chosen]["kept_sweep"] == 0 and not d.morozov:
             winner = None       # the start itself won: no weight to search past
         nxt = search.next_value(winner) if search else None
         pending = [] if nxt is None else [{search.name: nxt}]
@@ -256,6 +286,12 @@ def _oracle_info(curve: list, k: int) -> dict:
 
 
 def _why(pick: dict, held: list, n_candidates: int, noise, k: int, n_views: int) -> str:
+    if "settled_fit_mse" in pick:
+        return (f"the largest of {n_candidates} weight(s) whose fitted-view mean squared "
+                f"residual where its run settled ({pick['settled_fit_mse']:.4g}) is at most "
+                f"the noise level {noise:.4g} (the lowest held-out one; Morozov), at its sweep "
+                f"with the lowest held-out residual on views {held} (sweep {k}); then run on "
+                f"all {n_views} views for {k} sweep(s)")
     state = (f"where the fitted views' mean squared residual first reached the noise level "
              f"{noise:.4g} (the lowest held-out one)" if pick.get("discrepancy_sweep")
              else "the rule kept")
@@ -287,7 +323,8 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
             it calls ``callback(iteration, volume)`` after every iteration and stops when
             the callback returns True.
         grid: candidate settings (a list of option dicts for ``run``, ties going to the
-            first in value order) or a ``LogGrid`` of one weight.
+            first in value order) or a ``LogGrid`` of one weight (its ``rule`` chooses;
+            under "morozov" every candidate runs to ``max_sweeps``).
         project: ``project(volume [x, y, z], geometry, angles) -> [view, v, u]``, the
             method's own forward model (predictions of the held-out views).
         max_sweeps: cap on iterations per candidate (the rule normally stops earlier).
@@ -311,8 +348,12 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     if scoring and case.vol_gt is None:
         raise ValueError(f"{name}: oracle=True needs a ground truth (vol_gt.npy)")
     fit, held = decision_split(case.geometry.n_views, rule.holdout_every, name)
+    morozov = isinstance(grid, LogGrid) and grid.rule == "morozov"
+    if morozov and discrepancy:
+        raise ValueError(f"{name}: the discrepancy sweep rule and Morozov's weight rule "
+                         "exclude each other")
     d = _Decision(case, project, fit, held, int(eval_every), discrepancy,
-                  None if start is None else tuple(start))
+                  None if start is None else tuple(start), morozov)
     t_start = time.perf_counter()
     candidates, chosen, noise, search = _decide(d, run, grid, rule, max_sweeps, name,
                                                 progress)
@@ -342,6 +383,12 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     }
     if search is not None:
         info["search"] = search
+    if morozov:
+        info["morozov"] = {
+            "noise_mse": noise, "tau": 1.0,
+            "noise_from": "lowest mean squared held-out-view residual over the decision runs",
+            "settled_fit_mse": {str(c["setting"][grid.name]): c["settled_fit_mse"]
+                                for c in candidates}}
     if discrepancy:
         info["discrepancy"] = {
             "noise_mse": noise, "tau": 1.0,

@@ -6,6 +6,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+#: How ``run_heldout`` picks the winning value: the best held-out PSNR; the largest value
+#: within one standard error of it; or the largest value whose fitted-view residual, where
+#: its run settles, is at most the noise level the held-out views measure (Morozov).
+RULES = {"best": "best held-out PSNR", "one_se": "one standard error",
+         "morozov": "Morozov's discrepancy principle"}
+
 
 @dataclass
 class LogGrid:
@@ -20,8 +26,7 @@ class LogGrid:
     name: str
     values: list
     max_extend: int = 4
-    one_se: bool = False       # choose by the one-standard-error rule (larger weight wins
-                               # within one standard error of the best held-out PSNR)
+    rule: str = "best"         # which value wins: a key of RULES (mi_grg.protocol.heldout)
     added: dict = field(default_factory=lambda: {"below": 0, "above": 0})
 
     def __post_init__(self):
@@ -36,6 +41,9 @@ class LogGrid:
         if int(self.max_extend) != self.max_extend or self.max_extend < 0:
             raise ValueError(f"{self.name}: max_extend must be an integer >= 0, got "
                              f"{self.max_extend}")
+        if self.rule not in RULES:
+            raise ValueError(f"{self.name}: rule must be one of {', '.join(RULES)}, got "
+                             f"{self.rule!r}")
         self.values = sorted(v)
 
     def settings(self) -> list:
@@ -60,4 +68,4 @@ class LogGrid:
         return {"weight": self.name, "values_tried": list(self.values), "chosen": winner,
                 "interior": interior, "added_below": self.added["below"],
                 "added_above": self.added["above"], "max_extend": int(self.max_extend),
-                "rule": "one standard error" if self.one_se else "best held-out PSNR"}
+                "rule": RULES[self.rule]}
