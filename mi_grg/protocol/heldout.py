@@ -300,6 +300,20 @@ def _why(pick: dict, held: list, n_candidates: int, noise, k: int, n_views: int)
             f"on all {n_views} views for {k} sweep(s)")
 
 
+def _noise_info(candidates: list, noise, d: _Decision) -> dict:
+    """What the noise level decided: each weight's settled fit (Morozov) or each
+    candidate's discrepancy sweep; {} when neither rule ran."""
+    if not (d.morozov or d.discrepancy):
+        return {}
+    record = {"noise_mse": noise, "tau": 1.0, "noise_from": "lowest mean squared "
+              "held-out-view residual over the decision runs"}
+    if d.morozov:
+        return {"morozov": {**record, "settled_fit_mse": {
+            str(_sort_key(c["setting"])[0]): c["settled_fit_mse"] for c in candidates}}}
+    return {"discrepancy": {**record, "sweeps": {
+        str(i): c["discrepancy_sweep"] for i, c in enumerate(candidates)}}}
+
+
 def _check_args(name, grid, max_sweeps, eval_every, start) -> None:
     if int(max_sweeps) < 1:
         raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
@@ -383,17 +397,7 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     }
     if search is not None:
         info["search"] = search
-    if morozov:
-        info["morozov"] = {
-            "noise_mse": noise, "tau": 1.0,
-            "noise_from": "lowest mean squared held-out-view residual over the decision runs",
-            "settled_fit_mse": {str(c["setting"][grid.name]): c["settled_fit_mse"]
-                                for c in candidates}}
-    if discrepancy:
-        info["discrepancy"] = {
-            "noise_mse": noise, "tau": 1.0,
-            "noise_from": "lowest mean squared held-out-view residual over the decision runs",
-            "sweeps": {str(i): c["discrepancy_sweep"] for i, c in enumerate(candidates)}}
+    info.update(_noise_info(candidates, noise, d))
     if scoring and curve:
         info["oracle"] = _oracle_info(curve, k)
     return vol, info
