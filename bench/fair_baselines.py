@@ -29,6 +29,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = [("sart", "sart", {}), ("asd-pocs", "asd-pocs", {}), ("pdhg", "pdhg", {}),
+        ("pdhg-morozov", "pdhg", {"lam_rule": "morozov"}),
         ("sart-fixed", "sart", {"n_iter": 10, "stop": "none"}),
         ("asd-pocs-fixed", "asd-pocs", {"n_iter": 10, "stop": "none"})]
 TARGET_GAP_DB, TARGET_SECONDS = 0.5, 30.0
@@ -51,10 +52,12 @@ def main(argv=None) -> int:
         return 0
     from mi_grg.lab.runner import suite_case
     from mi_grg.lab.suite import load_suite
-    from mi_grg.methods import reconstruct
+    from mi_grg.methods import code_version, reconstruct
     suite = load_suite(args.suite)
     data_root = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "fair_baselines"
-    rows = []
+    path = ROOT / "docs" / "bench" / "fair_baselines.json"
+    old = json.loads(path.read_text()) if path.exists() else {"rows": []}
+    rows = [{"code": old["machine"]["mi_grg"], **r} for r in old["rows"]]   # kept rows
     for name in args.cases.split(","):
         case = suite_case(suite.case(name), data_root)
         for run, method, opts in [r for r in RUNS if r[0] in args.runs.split(",")]:
@@ -78,7 +81,11 @@ def main(argv=None) -> int:
                            candidates=[{k: c[k] for k in ("setting", "kept_sweep",
                                                           "sweeps_run", "heldout_psnr")}
                                        for c in info["candidates"]])
-            rows.append(row)
+            row["code"] = code_version()
+            rows = [r for r in rows if (r["case"], r["run"]) != (name, run)] + [row]
+            cases = list(dict.fromkeys(r["case"] for r in rows))
+            order = [r for r, _, _ in RUNS]
+            rows.sort(key=lambda r: (cases.index(r["case"]), order.index(r["run"])))
             print(json.dumps({k: row.get(k) for k in ("case", "run", "psnr_3d", "seconds",
                                                       "gap_db", "chosen")}), flush=True)
         write(rows, args)          # after every case: nothing lost on a crash
@@ -91,7 +98,7 @@ def write(rows: list, args) -> dict:
     import mi_grg
     from mi_grg.methods import code_version
     summary = {}
-    for run in ("sart", "asd-pocs", "pdhg"):
+    for run in ("sart", "asd-pocs", "pdhg", "pdhg-morozov"):
         sel = [r for r in rows if r["run"] == run and r.get("gap_db") is not None]
         if sel:
             summary[run] = {"mean_gap_db": statistics.mean(r["gap_db"] for r in sel),
@@ -120,7 +127,7 @@ def markdown(result: dict) -> str:
              f"Cases {', '.join(result['cases'])} of experiments/suite_cpu.json (64^3, 96^2 "
              f"detector, 25 noisy views); variant {result['machine']['variant']}, "
              f"{result['machine']['cores']} cores (shared: the 1-minute load average at "
-             f"each run's start is in the JSON), code {result['machine']['mi_grg']}; "
+             f"each run's start is in the JSON), code {', '.join(sorted({r.get('code', result['machine']['mi_grg']) for r in result['rows']}))} (each row's in the JSON); "
              f"{result['reps']} repetition(s), median time.", "",
              "Held-out rows (the default): sweeps and regularisation chosen without the "
              "ground truth on the training views, one in 8 held out (evenly spread), then the chosen "
@@ -130,7 +137,10 @@ def markdown(result: dict) -> str:
              "lowest held-out mean squared residual). The TV weights (ASD-POCS's alpha at its "
              "discrepancy sweep, PDHG's lam at its kept iteration) by the one-standard-error "
              "rule: the largest weight whose held-out PSNR lies within one standard error "
-             "(over the held-out views) of the best (mi_grg.protocol.heldout). **Oracle** = the best 3-D PSNR "
+             "(over the held-out views) of the best (mi_grg.protocol.heldout); pdhg-morozov: PDHG's "
+             "lam by Morozov's discrepancy principle instead (the largest weight whose fitted "
+             "residual at the iteration cap is at most the noise level), its iterations by "
+             "the lowest held-out residual, the rule of gr's TV refinement. **Oracle** = the best 3-D PSNR "
              "over the chosen setting's sweeps on all views, picked with the ground truth "
              "(reported only; it decides nothing); gap = oracle − result. Time = the "
              "result's wall-clock seconds (the held-out decision included; the oracle's "
@@ -163,7 +173,7 @@ def markdown(result: dict) -> str:
     from mi_grg.classical.iterative import HELDOUT_SWEEP_CAP
     from mi_grg.classical.pdhg import HELDOUT_ITERATION_CAP
     cands = [(r["run"], c) for r in result["rows"] for c in r.get("candidates") or []]
-    at_cap = sum(c["sweeps_run"] >= (HELDOUT_ITERATION_CAP if run == "pdhg"
+    at_cap = sum(c["sweeps_run"] >= (HELDOUT_ITERATION_CAP if run.startswith("pdhg")
                                      else HELDOUT_SWEEP_CAP) for run, c in cands)
     lines += ["", f"The held-out PSNR rule stopped {len(cands) - at_cap} of the "
               f"{len(cands)} candidate runs before the sweep cap ({HELDOUT_SWEEP_CAP} sweeps "

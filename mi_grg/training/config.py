@@ -199,8 +199,8 @@ class Protocol:
     refit_iterations: int = 0      # brief refit on all views after stopping
     refine: str = "tv"             # after training: "tv" refines the voxelised result by
                                    # TV-regularised least squares (PDHG started from it),
-                                   # its weight and iterations chosen on the held-out views
-                                   # (mi_grg.training.refine; why the default:
+                                   # its weight by Morozov's rule, its length by the held-out
+                                   # residual (mi_grg.training.refine; why the default:
                                    # docs/benchmarks.md, "TV refinement"); "none": the
                                    # field as trained (the paper, R2-Gaussian)
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
