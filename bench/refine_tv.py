@@ -13,7 +13,8 @@ against the ground truth is scored here only; no decision reads it.
         [--cases needles,bone] [--runs DIR] [--option iterations=9000 --tag NAME]
 
 ``--option key=value``: gr's training options (e.g. more iterations, holdout_every=0);
-``--tag NAME`` writes docs/bench/refine_tv_NAME.* instead. Writes docs/bench/refine_tv.{json,md}
+``--tag NAME`` writes docs/bench/refine_tv_NAME.* instead; ``--markdown-only`` re-writes the
+.md from the .json against today's baselines. Writes docs/bench/refine_tv.{json,md}
 after every case (nothing lost on a crash).
 """
 from __future__ import annotations
@@ -133,6 +134,8 @@ def main(argv=None) -> int:
     ap.add_argument("--suite", default=str(ROOT / "experiments" / "suite_cpu.json"))
     ap.add_argument("--option", action="append", default=[], help="key=value (repeat)")
     ap.add_argument("--tag", help="write docs/bench/refine_tv_TAG.* instead")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="re-write the .md from the .json (no runs; e.g. after the baselines)")
     args = ap.parse_args(argv)
     import sys
     sys.path.insert(0, str(ROOT / "bench"))
@@ -146,7 +149,7 @@ def main(argv=None) -> int:
     out = OUT.with_name(f"refine_tv_{args.tag}") if args.tag else OUT
     path = out.with_suffix(".json")
     rows = json.loads(path.read_text())["rows"] if path.exists() else []
-    for name in args.cases.split(","):
+    for name in ([] if args.markdown_only else args.cases.split(",")):
         row = run_case(name, suite, tmp / "fair_baselines", runs, options)
         rows = [r for r in rows if r["case"] != name] + [row]
         rows.sort(key=lambda r: ALL_CASES.split(",").index(r["case"]))
@@ -154,6 +157,7 @@ def main(argv=None) -> int:
         out.with_suffix(".md").write_text(markdown(rows, best))
         print(json.dumps({k: row[k] for k in ("case", "gr", "gr_refined", "lam",
                                               "iterations")}), flush=True)
+    out.with_suffix(".md").write_text(markdown(rows, best))
     print(out.with_suffix(".md").read_text())
     return 0
 
