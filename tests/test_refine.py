@@ -108,6 +108,8 @@ def test_refinement_removes_voxel_noise_the_views_do_not_constrain(lam_rule):
         reconstruct_pdhg(case, stop="none", start=(gt, gt), progress=False)
     with pytest.raises(ValueError, match="leaves nothing to choose"):
         reconstruct_pdhg(case, lam=0.01, lam_rule="morozov", progress=False)
+    with pytest.raises(ValueError, match="lam_rule must be one of"):
+        reconstruct_pdhg(case, lam_rule="lowest", progress=False)
 
 
 def test_gr_refine_option(tiny_case):

@@ -40,7 +40,7 @@ from mi_grg.classical.iterative import (_check_inputs, _fixed, _initial, _one, _
                                         _to_numpy, weight_grid)
 from mi_grg.core.joseph import forward_project
 from mi_grg.protocol.heldout import run_heldout
-from mi_grg.protocol.search import LogGrid
+from mi_grg.protocol.search import RULES, LogGrid
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
 GRAD_NORM = math.sqrt(12.0)
@@ -297,6 +297,8 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     was decided); unknown options raise.
     """
     gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
+    if lam_rule is not None and lam_rule not in RULES:
+        raise ValueError(f"pdhg: lam_rule must be one of {', '.join(RULES)}, got {lam_rule!r}")
     norms = {}
 
     def run(proj, geo, **kw):
