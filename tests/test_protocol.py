@@ -133,6 +133,9 @@ def test_morozov_takes_the_largest_weight_that_fits_the_data_to_their_noise():
     worse = [_candidate(0.01, [(5, 1.0, 3.0)]), _candidate(0.001, [(5, 2.0, 2.0)])]
     chosen, noise = _choose(worse, False, "morozov")
     assert noise == 1.0 and worse[chosen]["setting"]["lam"] == 0.001
+    from mi_grg.protocol.heldout import _why
+    assert _why(worse[chosen], [1], 2, noise, 5, 9).startswith("the smallest of 2 weight(s)")
+    assert _why(cands[2], [1], 3, 0.9, 10, 9).startswith("the largest of 3 weight(s)")
     with pytest.raises(ValueError, match="rule must be one of"):
         LogGrid("lam", [0.001, 0.01], rule="lowest")
 

@@ -147,7 +147,7 @@ def _choose(candidates: list, discrepancy: bool, rule: str = "best",
     ``mi_grg.protocol.search.RULES`` ("morozov": ``_morozov``). With ``discrepancy`` each
     candidate's sweep becomes its discrepancy sweep where its residual reaches the noise
     level (re-judged whenever candidates are added: the level is a minimum over all).
-    With ``one_se`` the choice is the one-standard-error rule (``_one_se``). With
+    With rule "one_se" the choice is the one-standard-error rule (``_one_se``). With
     ``from_start`` (runs from a given start) a candidate kept at sweep 0 is the start
     itself, whatever its weight: it ranks below every candidate that regularised it."""
     if rule == "morozov":
@@ -287,11 +287,14 @@ def _oracle_info(curve: list, k: int) -> dict:
 
 def _why(pick: dict, held: list, n_candidates: int, noise, k: int, n_views: int) -> str:
     if "settled_fit_mse" in pick:
-        return (f"the largest of {n_candidates} weight(s) whose fitted-view mean squared "
-                f"residual where its run settled ({pick['settled_fit_mse']:.4g}) is at most "
-                f"the noise level {noise:.4g} (the lowest held-out one; Morozov), at its sweep "
-                f"with the lowest held-out residual on views {held} (sweep {k}); then run on "
-                f"all {n_views} views for {k} sweep(s)")
+        fits = pick["settled_fit_mse"] <= noise
+        return ((f"the largest of {n_candidates} weight(s) whose fitted-view mean squared "
+                 "residual where its run settled" if fits else f"the smallest of "
+                 f"{n_candidates} weight(s), since none settled with a fitted-view mean "
+                 "squared residual") + f" ({pick['settled_fit_mse']:.4g}) at most the noise "
+                f"level {noise:.4g} (the lowest held-out one; Morozov), at its sweep with the "
+                f"lowest held-out residual on views {held} (sweep {k}); then run on all "
+                f"{n_views} views for {k} sweep(s)")
     state = (f"where the fitted views' mean squared residual first reached the noise level "
              f"{noise:.4g} (the lowest held-out one)" if pick.get("discrepancy_sweep")
              else "the rule kept")
