@@ -68,6 +68,9 @@ def one(phantom: str, n: int, method: str, options: dict, logs: str | None = Non
     if info and method in ("r2", "gr"):
         out.update({k: info[k] for k in ("iterations_run", "iterations_planned", "stopped_by",
                                          "n_gaussians")})
+        if "refine" in info:       # gr's default refines after training (its decision)
+            out["refine"] = {k: info["refine"].get(k) for k in (
+                "lam", "iterations", "decision_seconds", "final_seconds", "skipped")}
     elif info and "chosen" in info:        # a classical method's held-out decision
         out["chosen"] = info["chosen"]
     return out
