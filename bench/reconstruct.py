@@ -1,4 +1,4 @@
-"""Reconstruction quality and speed: fdk, sart, asd-pocs, r2 and gr on the phantom suite.
+"""Reconstruction quality and speed: fdk, sart, asd-pocs, pdhg, r2 and gr on the phantom suite.
 
 Each (phantom, size, method) runs in its own process, so that its peak resident memory
 (ru_maxrss) is its own. Cases: 25 noisy views (TIGRE CTnoise, I0 1e4, electronic std 10),
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-METHODS = ("fdk", "sart", "asd-pocs", "r2", "gr")
+METHODS = ("fdk", "sart", "asd-pocs", "pdhg", "r2", "gr")
 
 
 def one(phantom: str, n: int, method: str, options: dict, logs: str | None = None) -> dict:
