@@ -278,7 +278,7 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
 def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamma=None,
                      lam_rule=None, upper=None, nonneg: bool = True, power_iters: int = 8,
                      eval_every: int = EVAL_EVERY, holdout_every=None, oracle=None,
-                     start=None, final: bool = True, progress: bool = True):
+                     start=None, progress: bool = True):
     """The ``--method pdhg`` entry point: Chambolle-Pock TV of ``case.train``.
 
     Options: stop ("heldout": the iteration count and lam are chosen on held-out views by
@@ -292,7 +292,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
     ground truth exists), start (None; or, to refine another method's result under
     "heldout", the volumes [x, y, z] the decision runs and the final run start from:
-    ``run_heldout``'s ``start``), final (False: decide only, the volume is None),
+    ``run_heldout``'s ``start``),
     progress. Returns float32 [x, y, z] (and, under "heldout", what
     was decided); unknown options raise.
     """
@@ -324,7 +324,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
                             eval_every=eval_every,
                             max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,
                             holdout_every=holdout_every, oracle=oracle, start=start,
-                            final=final, progress=progress)
+                            progress=progress)
     info["norm_A"] = {"fitted_views": norms.get(np.asarray(
         case.geometry.angles, np.float64)[info["decision_views"]].tobytes()),
         "all_views": norms.get(np.asarray(case.geometry.angles, np.float64).tobytes()),

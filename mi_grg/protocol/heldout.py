@@ -137,6 +137,7 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
          "seconds": time.perf_counter() - t0}
     if d.discrepancy or d.morozov:
         c["residuals"] = residuals
+    if d.discrepancy:
         c["rule_sweep"] = c["kept_sweep"]
     return c
 
@@ -330,7 +331,7 @@ def _check_args(name, grid, max_sweeps, eval_every, start) -> None:
 
 def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
                 eval_every: int = 1, holdout_every: int | None = None, oracle=None,
-                discrepancy: bool = False, start=None, final: bool = True,
+                discrepancy: bool = False, start=None,
                 progress: bool = True):
     """The protocol of the module docstring for one method.
 
@@ -355,7 +356,6 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
             starts from (its ``init`` option), for refining another method's result. The
             decision runs' start must not have been fitted to the held-out views. The
             start itself is a candidate (sweep 0: kept unchanged).
-        final: False stops after the decision (steps 1-4) and returns (None, info).
     Returns:
         (volume [x, y, z] float32, info dict for metrics.json).
     """
@@ -379,7 +379,7 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     k = int(pick["kept_sweep"])
     vol, final_seconds, total_final, curve = _final_run(
         case, run, pick, max_sweeps, int(eval_every), scoring, progress,
-        None if start is None else start[1]) if final else (None, 0.0, 0.0, [])
+        None if start is None else start[1])
     n = int(case.geometry.n_views)
     info = {
         "protocol": "heldout",
