@@ -547,6 +547,19 @@ def _frozen_markdown(meta, cells) -> str:
     return "\n".join(lines)
 
 
+def _machine(variant: str) -> str:
+    """The host's processor, and on CUDA the GPU's name, so that each figure names its device."""
+    host = platform.processor() or platform.machine()
+    if not variant.startswith("cuda"):
+        return host
+    try:
+        gpu = subprocess.check_output(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                      text=True).strip().splitlines()[0]
+    except Exception:   # noqa: BLE001
+        gpu = "unnamed GPU"
+    return f"{gpu}, host {host}"
+
+
 def frozen_main(args) -> int:
     cells = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -565,7 +578,7 @@ def frozen_main(args) -> int:
                     runs.append(json.loads(Path(out).read_text()))
                 cells.append(_frozen_cell(runs))
     meta = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+            "machine": _machine(args.variant), "cpus": os.cpu_count(),
             "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
                                                              _git("status", "--porcelain") else ""),
             "rounds": args.rounds, "blocks": args.blocks, "iters": args.iters,
@@ -694,8 +707,8 @@ def main() -> int:
                     cell[label][key] = {p: statistics.median(r[key][p] for r in rs)
                                         for p in PARTS}
             cells.append(cell)
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": platform.processor()
-            or platform.machine(), "cpus": os.cpu_count(), "before": before,
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(args.variant),
+            "cpus": os.cpu_count(), "before": before,
             "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
                                                               _git("status", "--porcelain") else ""),
             "iters_per_process": 2 * args.iters, "rounds": args.rounds,

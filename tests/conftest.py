@@ -35,17 +35,18 @@ def small_cone_geometry():
 
 @pytest.fixture
 def crash_after():
-    """crash_after(trainer, n): run ``trainer`` and let it crash (KeyboardInterrupt) in the
-    optimiser step after ``n`` steps, as an interrupted run would."""
+    """crash_after(trainer, n): run ``trainer`` and let it crash (KeyboardInterrupt) at the
+    start of the iteration after ``n`` iterations, as an interrupted run would (the traced
+    and the recorded step both go through ``Trainer._step``)."""
     def run(trainer, n):
-        step, calls = trainer.optimizer.step, [0]
+        step, calls = trainer._step, [0]
 
         def crashing_step(*a, **k):
             calls[0] += 1
             if calls[0] > n:
                 raise KeyboardInterrupt
             return step(*a, **k)
-        trainer.optimizer.step = crashing_step
+        trainer._step = crashing_step
         with pytest.raises(KeyboardInterrupt):
             trainer.run()
     return run

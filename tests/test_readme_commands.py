@@ -41,8 +41,9 @@ def readme_lines(program: str = "mi-grg") -> list:
 
 def parse_only_reason(argv):
     line = " ".join(argv)
+    command_at = 2 if argv[0] == "--variant" else 0    # after the global option
     for (command, word), reason in PARSE_ONLY.items():
-        if argv[0] == command and word in line:
+        if argv[command_at] == command and word in line:
             return reason
     return None
 

@@ -283,7 +283,7 @@ def test_tv_block_is_voxelized_with_tv_extent(tiny_case, monkeypatch, tv_extent,
 
     monkeypatch.setattr(vox, "voxelize_dr", spy)
     cfg = make_config("gr", iterations=3, tv_extent=tv_extent, extent=extent, tv_every=1,
-                      **TINY)
+                      frozen_step=False, **TINY)   # a spy sees the traced step's calls
     Trainer(tiny_case, cfg, progress=False).run()
     assert seen == [want] * 3 + [extent if extent is not None else TRAIN_EXTENT]
 
@@ -301,7 +301,8 @@ def test_tv_every_n_iterations_with_n_times_the_weight(tiny_case, monkeypatch):
     monkeypatch.setattr(losses, "tv_3d", unit_tv)
 
     def logged_losses(**kw):
-        tr = Trainer(tiny_case, make_config("gr", iterations=4, **TINY, **kw), progress=False)
+        tr = Trainer(tiny_case, make_config("gr", iterations=4, frozen_step=False, **TINY, **kw),
+                     progress=False)    # traced: the stub TV is called on every step
         tr.run()
         return [r["loss"] for r in tr.state.log]
 

@@ -200,7 +200,10 @@ def test_runs_with_the_old_split_are_stale():
 # ---------------------------------------------------------------------------- in training
 
 def spy_views(t: Trainer, monkeypatch):
-    """Record (iteration, trained view) and (iteration, evaluated views) of a run."""
+    """Record (iteration, trained view) and (iteration, evaluated views) of a run. The run
+    takes the traced step, whose projections a spy sees (the recorded step projects only
+    while recording; its equality with the traced one: test_frozen_step.py)."""
+    t.frozen = None
     trained, evaluated = [], []
     real_project = t._project
     angles = list(np.asarray(t.case.geometry.angles))
@@ -257,17 +260,17 @@ def test_a_stop_goes_on_from_the_kept_state_on_every_view(tiny_case, monkeypatch
     real_heldout = t._heldout_psnr
     monkeypatch.setattr(t, "_heldout_psnr", lambda raw: (real_heldout(raw), next(scores))[1])
     seen, stepped = {}, {}
-    real_update, real_step = t.stopper.update, t.optimizer.step
+    real_update, real_step = t.stopper.update, t._step
 
     def spy(it, value):
         seen[it] = np.asarray(t.state.raw["raw_densities"]).copy()
         return real_update(it, value)
 
-    def step(raw, *a, **k):
-        stepped[t.state.iteration + 1] = np.asarray(raw["raw_densities"]).copy()
-        return real_step(raw, *a, **k)
+    def step(it, raw, *a, **k):     # the state each iteration starts from
+        stepped[it] = np.asarray(raw["raw_densities"]).copy()
+        return real_step(it, raw, *a, **k)
     monkeypatch.setattr(t.stopper, "update", spy)
-    monkeypatch.setattr(t.optimizer, "step", step)
+    monkeypatch.setattr(t, "_step", step)
     info = t.run()
     assert [it for it, _ in evaluated] == [125, 250, 375, 500]
     first = min(it for it, v in trained if v in (1, 4))

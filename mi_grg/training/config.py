@@ -219,10 +219,11 @@ class Run:
                                    # returned state): the iteration count and schedule are
                                    # planned from a probe of this machine's speed instead of
                                    # iteration_rule (mi_grg.training.budget); None: no budget
-    frozen_step: bool = False      # record the iterations without TV block once with
-                                   # dr.freeze and replay them (no Python tracing per
-                                   # iteration; mi_grg.training.frozen_step): the same
-                                   # results, less host time
+    frozen_step: bool = True       # record the iteration once with dr.freeze and replay
+                                   # it (no Python tracing per iteration;
+                                   # mi_grg.training.frozen_step): the same results, less
+                                   # host time, which is most of a GPU's iteration
+                                   # (docs/benchmarks.md, "On a GPU"); false: traced
 
 
 #: TrainConfig's parts: attribute -> part class. Field names are unique across the parts,

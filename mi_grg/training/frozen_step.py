@@ -29,6 +29,7 @@ reads and where each went.
 """
 from __future__ import annotations
 
+import gc
 import math
 
 import drjit as dr
@@ -248,7 +249,15 @@ class FrozenStep:
                   "tv_start": [dr.opaque(mi.Int32, int(s)) for s in start] if tv else None,
                   "stats": update[0]["stats"] if update is not None else None,
                   "adam": update[0]["adam"] if update is not None else None}
-        return self.fn[tv](self.static, inputs, key), key
+        # Python's cycle collector must not run inside a recording or replay: collecting
+        # another (dead) trainer's recorded function there aborts Dr.Jit.
+        paused = gc.isenabled()
+        gc.disable()
+        try:
+            return self.fn[tv](self.static, inputs, key), key
+        finally:
+            if paused:
+                gc.enable()
 
     def check(self, out: dict, key: tuple) -> float | None:
         """The loss value, or None: the result is incomplete (said once per kind); the
