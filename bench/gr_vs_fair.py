@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "bench" / "gr_vs_fair"
 FAIR = ROOT / "docs" / "bench" / "fair_baselines.json"
-CLASSICAL = ("sart", "asd-pocs", "pdhg", "pdhg-morozov")
+CLASSICAL = ("sart", "asd-pocs", "pdhg", "pdhg-morozov", "pdhg-200")
 ALL_CASES = "shepp,shepp-parallel,mni152,shell,needles,shells,bone,cement"
 
 
