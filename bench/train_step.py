@@ -578,16 +578,26 @@ def frozen_main(args) -> int:
                     runs.append(json.loads(Path(out).read_text()))
                 cells.append(_frozen_cell(runs))
     meta = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "machine": _machine(args.variant), "cpus": os.cpu_count(),
+            **_run_meta(args), "rounds": args.rounds, "blocks": args.blocks,
+            "iters": args.iters}
+    return _write(args, "train_step_frozen", meta, cells, _frozen_markdown)
+
+
+def _run_meta(args) -> dict:
+    """Where and on which code a bench run measured."""
+    return {"machine": _machine(args.variant), "cpus": os.cpu_count(),
             "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
                                                              _git("status", "--porcelain") else ""),
-            "rounds": args.rounds, "blocks": args.blocks, "iters": args.iters,
             "variant": args.variant}
+
+
+def _write(args, name: str, meta: dict, cells: list, markdown) -> int:
+    """docs/bench/NAME[_cuda].{json,md} (or under --out), and the table printed."""
     outdir = Path(args.out)
     outdir.mkdir(parents=True, exist_ok=True)
-    name = "train_step_frozen" + ("_cuda" if args.variant.startswith("cuda") else "")
+    name += "_cuda" if args.variant.startswith("cuda") else ""
     (outdir / f"{name}.json").write_text(json.dumps({"meta": meta, "cells": cells}, indent=1))
-    (outdir / f"{name}.md").write_text(_frozen_markdown(meta, cells))
+    (outdir / f"{name}.md").write_text(markdown(meta, cells))
     print((outdir / f"{name}.md").read_text())
     return 0
 
@@ -707,19 +717,9 @@ def main() -> int:
                     cell[label][key] = {p: statistics.median(r[key][p] for r in rs)
                                         for p in PARTS}
             cells.append(cell)
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(args.variant),
-            "cpus": os.cpu_count(), "before": before,
-            "after": _git("rev-parse", "--short", "HEAD") + (" + working tree" if
-                                                              _git("status", "--porcelain") else ""),
-            "iters_per_process": 2 * args.iters, "rounds": args.rounds,
-            "variant": args.variant}
-    outdir = Path(args.out)
-    outdir.mkdir(parents=True, exist_ok=True)
-    name = "train_step" + ("_cuda" if args.variant.startswith("cuda") else "")
-    (outdir / f"{name}.json").write_text(json.dumps({"meta": meta, "cells": cells}, indent=1))
-    (outdir / f"{name}.md").write_text(_markdown(meta, cells))
-    print((outdir / f"{name}.md").read_text())
-    return 0
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), **_run_meta(args), "before": before,
+            "iters_per_process": 2 * args.iters, "rounds": args.rounds}
+    return _write(args, "train_step", meta, cells, _markdown)
 
 
 def _markdown(meta, cells) -> str:
