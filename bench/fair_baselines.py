@@ -30,7 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = [("sart", "sart", {}), ("asd-pocs", "asd-pocs", {}), ("pdhg", "pdhg", {}),
         ("pdhg-morozov", "pdhg", {"lam_rule": "morozov"}),
-        ("pdhg-200", "pdhg", {"n_iter": 200}),     # PDHG's cap binds at 60 on most cases
+        ("pdhg-200", "pdhg", {"n_iter": 200}),     # whether the 60 cap holds PDHG back
         ("sart-fixed", "sart", {"n_iter": 10, "stop": "none"}),
         ("asd-pocs-fixed", "asd-pocs", {"n_iter": 10, "stop": "none"})]
 TARGET_GAP_DB, TARGET_SECONDS = 0.5, 30.0
