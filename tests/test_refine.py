@@ -112,7 +112,7 @@ def test_refinement_removes_voxel_noise_the_views_do_not_constrain(lam_rule):
         reconstruct_pdhg(case, lam_rule="lowest", progress=False)
 
 
-def test_gr_refine_option(tiny_case):
+def test_gr_refine_option(tiny_case, capsys):
     """refine="tv" runs after training and records its decision; without held-out views it
     says it was skipped; an unknown mode is a one-line error naming the option."""
     from mi_grg.methods import reconstruct
@@ -128,7 +128,9 @@ def test_gr_refine_option(tiny_case):
         np.testing.assert_array_equal(vol, plain)
     else:
         assert not np.array_equal(vol, plain)
+    capsys.readouterr()
     _, m = reconstruct(tiny_case, "gr", refine="tv", **{**opts, "holdout_every": 0})
     assert "holdout_every=0" in m["method_info"]["refine"]["skipped"]
+    assert "refine=tv did nothing: no held-out views" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="refine must be one of"):
         reconstruct(tiny_case, "gr", refine="blur", **opts)

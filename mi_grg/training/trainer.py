@@ -739,6 +739,9 @@ def _train_method(method: str):
         if cfg.protocol.refine == "tv":
             from mi_grg.training.refine import refine_tv
             vol, summary["refine"] = refine_tv(trainer, progress)
+            if "skipped" in summary["refine"]:     # said, not only recorded
+                print(f"refine=tv did nothing: {summary['refine']['skipped']}; the trained "
+                      "field is returned unrefined", file=sys.stderr)
             return vol, summary
         return trainer.volume(), summary
     run.__name__ = f"reconstruct_{method}"
