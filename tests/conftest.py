@@ -90,3 +90,26 @@ def tiny_case():
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     geo = default_geometry(n=16, det=24, views=6)
     return simulate_case("shepp", geo, default_test_angles(2), NoiseModel(), seed=3)
+
+
+@pytest.fixture
+def root(pristine, tmp_path):
+    """A fresh copy of the module's ``pristine`` folder (CLI inputs and earlier outputs),
+    for a test that may change it."""
+    import shutil
+    shutil.copytree(pristine, tmp_path / "w")
+    return tmp_path / "w"
+
+
+def _tree_hash(folder) -> dict:
+    """Every path under ``folder`` (hidden ones too) -> its content's hash (None: folder)."""
+    import hashlib
+    return {str(p.relative_to(folder)): None if p.is_dir() else
+            hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*"))}
+
+
+@pytest.fixture
+def tree_hash():
+    """tree_hash(folder): every path under it -> its content's hash (None: folder), to show
+    that a command left a folder byte for byte as it was."""
+    return _tree_hash

@@ -5,7 +5,6 @@ Also: replacing an output is atomic (a failure mid-swap, a killed run) and no tr
 reaches the terminal."""
 from __future__ import annotations
 
-import hashlib
 import os
 import pickle
 import shutil
@@ -66,21 +65,6 @@ def pristine(tmp_path_factory):
     root = tmp_path_factory.mktemp("pristine")
     _write_inputs(root)
     return root
-
-
-@pytest.fixture
-def root(pristine, tmp_path):
-    shutil.copytree(pristine, tmp_path / "w")
-    return tmp_path / "w"
-
-
-def tree_hash(root: Path) -> dict:
-    """Every path under ``root`` (hidden ones too) -> its content's hash (None: folder)."""
-    out = {}
-    for p in sorted(root.rglob("*")):
-        rel = str(p.relative_to(root))
-        out[rel] = None if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
 
 
 def run_cli(argv, capsys) -> tuple:
@@ -270,7 +254,7 @@ SIMULATE_CASES = {
 }
 
 
-def _check_refused(command, cases, name, root, capsys):
+def _check_refused(command, cases, name, root, capsys, tree_hash):
     argv, breaks, culprits = cases[name]
     if breaks:
         breaks(root)
@@ -286,18 +270,18 @@ def _check_refused(command, cases, name, root, capsys):
 
 
 @pytest.mark.parametrize("name", list(IMPORT_CASES))
-def test_import_refuses(name, root, capsys):
-    _check_refused("import", IMPORT_CASES, name, root, capsys)
+def test_import_refuses(name, root, capsys, tree_hash):
+    _check_refused("import", IMPORT_CASES, name, root, capsys, tree_hash)
 
 
 @pytest.mark.parametrize("name", list(RECONSTRUCT_CASES))
-def test_reconstruct_refuses(name, root, capsys):
-    _check_refused("reconstruct", RECONSTRUCT_CASES, name, root, capsys)
+def test_reconstruct_refuses(name, root, capsys, tree_hash):
+    _check_refused("reconstruct", RECONSTRUCT_CASES, name, root, capsys, tree_hash)
 
 
 @pytest.mark.parametrize("name", list(SIMULATE_CASES))
-def test_simulate_refuses(name, root, capsys):
-    _check_refused("simulate", SIMULATE_CASES, name, root, capsys)
+def test_simulate_refuses(name, root, capsys, tree_hash):
+    _check_refused("simulate", SIMULATE_CASES, name, root, capsys, tree_hash)
 
 
 def test_simulate_replaces_an_earlier_data_set_whole(root, capsys):
@@ -324,7 +308,7 @@ def test_the_inputs_themselves_import(root, capsys):
 
 
 # ---------------------------------------------------------------- atomic replacement
-def test_failed_swap_leaves_the_old_output(root, capsys, monkeypatch):
+def test_failed_swap_leaves_the_old_output(root, capsys, monkeypatch, tree_hash):
     """The new case is complete but moving it into place fails (as on a read-only
     folder): the earlier import is back, byte for byte, and nothing temporary is left."""
     import mi_grg.data.outputs as outputs
@@ -349,7 +333,7 @@ def _dead_pid() -> int:
     return p.pid
 
 
-def test_a_killed_replacement_is_repaired_on_the_next_run(root, capsys):
+def test_a_killed_replacement_is_repaired_on_the_next_run(root, capsys, tree_hash):
     """A run killed between its two renames leaves the old output aside and a temporary:
     the next run puts the old output back and removes the temporary (and says so)."""
     pid = _dead_pid()
@@ -366,7 +350,7 @@ def test_a_killed_replacement_is_repaired_on_the_next_run(root, capsys):
     assert not [p for p in root.iterdir() if p.name.startswith(".")]
 
 
-def test_a_killed_import_leaves_no_lasting_temporary(root, capsys):
+def test_a_killed_import_leaves_no_lasting_temporary(root, capsys, tree_hash):
     pid = _dead_pid()
     (root / f".prev.import-{pid}").mkdir()
     (root / f".prev.import-{pid}" / "meta_data.json").write_text("{")
@@ -398,7 +382,7 @@ def test_a_temporary_that_cannot_be_removed_is_named(root, capsys, monkeypatch):
 
 
 # ---------------------------------------------------------------- no traceback
-def test_no_traceback_in_a_real_process(root):
+def test_no_traceback_in_a_real_process(root, tree_hash):
     """The installed entry point, as a user runs it: one line on stderr, exit 2."""
     for argv in (["import", *(a.replace("{r}", str(root)) for a in FIPS),
                   "--out", f"{root}/scan", "--overwrite"],

@@ -5,10 +5,8 @@ interrupted or killed run from the checkpoint in its temporary."""
 from __future__ import annotations
 
 import errno
-import hashlib
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -41,18 +39,6 @@ def pristine(tmp_path_factory):
     return root
 
 
-@pytest.fixture
-def root(pristine, tmp_path):
-    shutil.copytree(pristine, tmp_path / "w")
-    return tmp_path / "w"
-
-
-def tree_hash(folder: Path) -> dict:
-    """Every path under ``folder`` (hidden ones too) -> its content's hash (None: folder)."""
-    return {str(p.relative_to(folder)): None if p.is_dir() else
-            hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*"))}
-
-
 def hidden(root: Path) -> list:
     return sorted(p.name for p in root.iterdir() if p.name.startswith("."))
 
@@ -74,7 +60,7 @@ def gr_metrics(root: Path) -> dict:
 
 
 # ---------------------------------------------------------------- failures
-def test_a_failed_write_leaves_the_earlier_output(root, capsys, monkeypatch):
+def test_a_failed_write_leaves_the_earlier_output(root, capsys, monkeypatch, tree_hash):
     """The new output is written, then the disk is full: --out is the earlier run, byte
     for byte, and nothing temporary is left beside it."""
     import mi_grg.methods as methods
@@ -93,7 +79,7 @@ def test_a_failed_write_leaves_the_earlier_output(root, capsys, monkeypatch):
     assert tree_hash(root) == before
 
 
-def test_a_training_run_that_fails_leaves_the_earlier_output(root, capsys, monkeypatch):
+def test_a_training_run_that_fails_leaves_the_earlier_output(root, capsys, monkeypatch, tree_hash):
     """gr fails at its second checkpoint, after the first was written: the earlier output
     is untouched and the failed run's temporary (checkpoint included) is gone."""
     from mi_grg.training.trainer import Trainer
@@ -171,7 +157,7 @@ def test_the_replaced_output_is_whole_and_complete(root, capsys):
 
 
 # ---------------------------------------------------------------- interrupted, killed
-def test_ctrl_c_keeps_the_run_for_resume(root, capsys, monkeypatch, sigint_raises):
+def test_ctrl_c_keeps_the_run_for_resume(root, capsys, monkeypatch, sigint_raises, tree_hash):
     """Ctrl-C at iteration 7: exit 130, --out unchanged, the run kept beside it with its
     checkpoint of iteration 7; a resume with other options fails and keeps it; a resume
     interrupted again at 12 keeps the newer run only; the same command with --resume then
@@ -208,7 +194,7 @@ def test_ctrl_c_keeps_the_run_for_resume(root, capsys, monkeypatch, sigint_raise
     assert hidden(root) == []
 
 
-def test_a_killed_run_resumes(root, capsys):
+def test_a_killed_run_resumes(root, capsys, tree_hash):
     """A real process replacing the earlier output is killed (SIGKILL) once it has a
     checkpoint: --out is the earlier run byte for byte, and the same command with --resume
     continues from the killed run's checkpoint to the end and replaces --out whole."""
