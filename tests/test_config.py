@@ -115,6 +115,8 @@ def test_automatic_fields_are_none_in_files_options_and_records(tmp_path):
         make_config("gr", old)
     with pytest.raises(ConfigError, match="iterations must be > 0 or none"):
         make_config("gr", iterations=0)
+    with pytest.raises(ConfigError, match="horizon must be > 0 or none"):
+        make_config("gr", horizon=-5)
     with pytest.raises(ConfigError, match="k expects a int"):
         make_config("gr", k="none")                  # only automatic fields take none
     recorded = {**make_config("gr").to_flat(), "iterations": 0, "extent": 0.0,

@@ -94,6 +94,13 @@ def test_lr_schedule_values(variant):
         assert opt.lr(k, 500) == pytest.approx(lr0 * math.sqrt(0.1), rel=1e-12)
         assert opt.lr(k, 250) == pytest.approx(lr0 * 0.1 ** 0.25, rel=1e-12)
         assert opt.lr(k, 5000) == pytest.approx(0.1 * lr0, rel=1e-12)   # constant afterwards
+    # annealing: past max_steps the same log rate goes on (0.1 per max_steps)
+    annealing = Adam(max_steps=1000, anneal=True)
+    for k, lr0 in DEFAULT_LR.items():
+        for t in (0, 250, 1000):
+            assert annealing.lr(k, t) == pytest.approx(opt.lr(k, t), rel=1e-12)
+        assert annealing.lr(k, 1500) == pytest.approx(lr0 * 0.1 ** 1.5, rel=1e-12)
+        assert annealing.lr(k, 3000) == pytest.approx(lr0 * 0.1 ** 3, rel=1e-12)
     # The first Adam step moves each coordinate by lr * g / (|g| + eps') = lr sign(g):
     # so the applied lr is observable; with iteration= it follows that position.
     p = mi.Float([0.0, 0.0])

@@ -108,6 +108,39 @@ def test_holdout_until_one_is_the_old_rule_and_holdout_every_zero_trains_all():
         make_config("gr", holdout_until=1.5)
 
 
+def test_a_run_longer_than_its_horizon_keeps_the_horizons_window():
+    """A 3000-iteration run with a 1000-iteration horizon decides and, after a stop, goes on
+    exactly as the 1000-iteration run; without a stop its views join where that run's do
+    and train every view to 3000."""
+    short = ViewProtocol(25, 8, 0.667, 1000, 125)
+    long = ViewProtocol(25, 8, 0.667, 3000, 125, horizon=1000)
+    assert long.window_end == short.window_end == 625
+    assert long.after_stop(500) == short.after_stop(500) == 300
+    stop = Stop(625, 500)
+    assert long.end(stop) == short.end(stop) == 925 and long.end() == 3000
+    assert not long.joined(625) and long.joined(626) and long.joined(3000)
+    assert ViewProtocol(25, 8, 0.667, 3000, 125, horizon=5000).window_end == 2000
+    assert ViewProtocol(25, 8, 1.0, 3000, 125, horizon=1000).window_end == 3000
+    with pytest.raises(ValueError, match="horizon"):
+        ViewProtocol(25, 8, 0.667, 3000, 125, horizon=0)
+
+
+def test_runs_from_before_the_horizon_that_ran_longer_than_the_rule_are_stale():
+    """Before ``horizon`` the schedule stretched to the run's count: a run recorded then
+    with more iterations than the rule's count is stale, one within it is not."""
+    from mi_grg.lab.staleness import stale_keys
+    from mi_grg.training.config import iterations_for_size
+    cfg = make_config("gr").to_flat()
+    del cfg["horizon"]
+    rule = iterations_for_size(64)
+
+    def run(planned, config=cfg):
+        return {"method": "gr", "options": {}, "nVoxel": [64, 64, 64],
+                "method_info": {**AUTO, "config": config, "iterations_planned": planned}}
+    assert stale_keys(run(rule)) == [] and stale_keys(run(rule * 3)) == ["horizon"]
+    assert stale_keys(run(rule * 3, make_config("gr").to_flat())) == []
+
+
 def test_stop_from_reads_the_stopper_state():
     assert stop_from(None) is None and stop_from({"reason": None, "history": []}) is None
     st = {"reason": "fell", "history": [[375, 20.0], [500, 19.0]], "kept_iteration": 375}
@@ -284,6 +317,35 @@ def test_a_stop_goes_on_from_the_kept_state_on_every_view(tiny_case, monkeypatch
     np.testing.assert_array_equal(stepped[501], seen[375])
     assert not np.array_equal(seen[375], seen[500])
     assert not np.array_equal(np.asarray(t.state.raw["raw_densities"]), seen[375])
+
+
+def test_a_longer_run_follows_the_horizons_schedule_then_anneals(tiny_case):
+    """iterations=240 with horizon=120: the schedule (densification window, evaluations,
+    held-out window) is the 120-iteration run's, the learning rate keeps decaying past 120,
+    and the first 120 iterations are that run's (the same state up to float atomics)."""
+    short = Trainer(tiny_case, make_config("gr", iterations=120, **TINY), progress=False)
+    long = Trainer(tiny_case, make_config("gr", iterations=240, horizon=120, **TINY),
+                   progress=False)
+    assert long.sched == short.sched and long.views.window_end == short.views.window_end
+    lr0 = long.optimizer.lr0["positions"]
+    assert long.optimizer.lr("positions", 240) == pytest.approx(0.01 * lr0, rel=1e-9)
+    stretched = Trainer(tiny_case, make_config("gr", iterations=240, horizon=240, **TINY),
+                        progress=False)
+    assert stretched.sched != short.sched
+    states = {}
+    real = long._step
+
+    def step(it, raw, *a, **k):
+        if it == 121:
+            states["long"] = np.asarray(raw["raw_densities"]).copy()
+        return real(it, raw, *a, **k)
+    long._step = step
+    info = long.run()
+    short.run()
+    assert info["iterations_run"] == 240
+    assert info["schedule"]["horizon"] == 120 and info["schedule"]["scaled_to"] == 120
+    np.testing.assert_allclose(states["long"], np.asarray(short.state.raw["raw_densities"]),
+                               rtol=1e-3, atol=1e-4)
 
 
 def test_holdout_every_zero_still_trains_on_every_view(tiny_case, monkeypatch):

@@ -73,6 +73,7 @@ def stale_keys(m: dict) -> list:
         now = make_config(m["method"], (m.get("options") or {}).get("config"), **opts).to_flat()
     except Exception:  # noqa: BLE001 (an option this code no longer accepts)
         return ["config"]
+    recorded = set(used)
     used = upgrade_config_dict({**ADDED_LATER, **used})   # recorded values win
     differ = {k for k in set(now) | set(used)
               if now.get(k) != used.get(k) and k not in BOOKKEEPING}
@@ -80,7 +81,7 @@ def stale_keys(m: dict) -> list:
         differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
     if "stop_noise" in differ and _margin_inert(m, used, now):
         differ.discard("stop_noise")
-    return sorted(differ | _auto_changed(m, used)) + split
+    return sorted(differ | _auto_changed(m, used, recorded)) + split
 
 
 #: What the automatic extent and iteration count resolved to in the earliest runs (which
@@ -88,11 +89,17 @@ def stale_keys(m: dict) -> list:
 _OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
 
 
-def _auto_changed(m: dict, used: dict) -> set:
+def _auto_changed(m: dict, used: dict, recorded: set) -> set:
     """Automatic fields (None in the run's config) that this code resolves differently
-    from what the run recorded in method_info (``extent``, ``iteration_rule``)."""
+    from what the run recorded in method_info (``extent``, ``iteration_rule``), and
+    ``horizon`` for a run from before it (``recorded``: its config's keys) that ran longer
+    than the rule's count, whose schedule stretched to its own length."""
     info = m.get("method_info") or {}
     out = set()
+    planned, nvox = info.get("iterations_planned"), m.get("nVoxel")
+    if ("horizon" not in recorded and planned and nvox
+            and int(planned) > iterations_for_size(max(nvox))):
+        out.add("horizon")
     if (used.get("extent") is None
             and float(info.get("extent", _OLD_AUTO["extent"])) != TRAIN_EXTENT):
         out.add("extent")

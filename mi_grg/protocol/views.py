@@ -27,6 +27,11 @@ draws is the same at the run's end (as far as the remaining iterations allow: if
 too few, only the held-out views train until the end). Off by default; a candidate protocol
 (docs/benchmarks.md, "Every view counts").
 
+``horizon``: a run longer than its schedule (``Schedule.horizon`` of the training config)
+measures the window and the all-view share after a stop against the horizon instead of its
+budget, so that it decides and stops exactly as the horizon-long run would; the iterations
+past that run's end train every view.
+
 ``holdout_until = 1`` is the behaviour from before: held out for the whole run, the kept
 state returned. Functions of the run's settings and of the stop (``Stop``) only, so that a
 resumed run rebuilds the same protocol from its checkpointed stopper state.
@@ -62,7 +67,10 @@ class ViewProtocol:
     n_views: training views; holdout_every: hold out views 0, n, 2n, ... (0: none);
     holdout_until: fraction of ``iterations`` during which they stay held out, in [0, 1];
     iterations: the run's budget; eval_every: interval between held-out evaluations;
-    catch_up: after the join, draw the held-out views more often (``draw_weights``)."""
+    catch_up: after the join, draw the held-out views more often (``draw_weights``);
+    horizon: the schedule's length when the run is longer (``Schedule.horizon``): the
+    window and the all-view share after a stop are measured against it, the iterations
+    past it train every view (None: the run's budget)."""
 
     n_views: int
     holdout_every: int
@@ -70,6 +78,7 @@ class ViewProtocol:
     iterations: int
     eval_every: int
     catch_up: bool = False
+    horizon: int | None = None
 
     def __post_init__(self):
         if not 0.0 <= self.holdout_until <= 1.0:
@@ -77,6 +86,8 @@ class ViewProtocol:
                              f"{self.holdout_until}")
         if self.n_views < 1 or self.iterations < 1 or self.eval_every < 1:
             raise ValueError("n_views, iterations and eval_every must be >= 1")
+        if self.horizon is not None and self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1 or None, got {self.horizon}")
         if self.holdout_every:
             decision_split(self.n_views, self.holdout_every, "the stop rule")
 
@@ -92,6 +103,12 @@ class ViewProtocol:
         return holdout_split(self.n_views, self.holdout_every)[0]
 
     @property
+    def scheduled(self) -> int:
+        """The iterations the window is measured against: the budget, or the horizon when
+        the budget is longer."""
+        return self.iterations if self.horizon is None else min(self.iterations, self.horizon)
+
+    @property
     def window_end(self) -> int:
         """Last iteration whose evaluation may decide (0: none can)."""
         if len(self.held) == 0:
@@ -99,15 +116,15 @@ class ViewProtocol:
         if self.holdout_until >= 1.0:
             return self.iterations
         # a small tolerance so that 0.75 x 1500 is 1125, not 1124.999...
-        limit = int(self.holdout_until * self.iterations + 1e-9)
+        limit = int(self.holdout_until * self.scheduled + 1e-9)
         return limit // self.eval_every * self.eval_every
 
     def after_stop(self, kept_iteration: int) -> int:
         """Iterations on every view after the stop rule fired, keeping ``kept_iteration``."""
         w = self.window_end
-        if w == 0 or w >= self.iterations:
+        if w == 0 or w >= self.scheduled:
             return 0
-        return int(round(kept_iteration * (self.iterations - w) / w))
+        return int(round(kept_iteration * (self.scheduled - w) / w))
 
     # ------------------------------------------------------------------ per iteration
     def joined(self, iteration: int, stop: Stop | None = None) -> bool:

@@ -16,7 +16,8 @@ With ``time_budget = SECONDS`` the trainer does not take its iteration count fro
 3. ``plan_iterations`` takes the largest I whose price fits the loop's share of the budget
    (the budget minus the time already spent on De-Init and the probe, minus ``RESERVE`` of
    the budget for writing the result); the schedule (densification window, learning-rate
-   decay, evaluation interval, held-out window) scales with I as it does with the rule's;
+   decay, evaluation interval, held-out window) scales with I as it does with the rule's,
+   up to the horizon (``Schedule.horizon``; a longer plan anneals past it);
 4. the plan is then corrected from the loop's own clock (``rest_seconds``): at every
    densification iteration the rest of the run is re-priced from the measured seconds per
    iteration and Gaussian and the count's recent growth, extrapolated linearly (up to the

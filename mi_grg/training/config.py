@@ -35,7 +35,7 @@ from mi_grg.protocol.early_stop import KEEP_STATES, STOP_RULE
 #: Fields whose None means "automatic" (each field's comment says what is chosen). Records
 #: written before they were optional spell that 0
 #: (``mi_grg.training.checkpoint.upgrade_config_dict``).
-AUTO_FIELDS = ("iterations", "extent", "graph_s", "tv_extent", "log_3d_every",
+AUTO_FIELDS = ("iterations", "horizon", "extent", "graph_s", "tv_extent", "log_3d_every",
                "checkpoint_every")
 
 #: Fields that cannot change a run's result (when its checkpoints are written): a resume
@@ -93,6 +93,14 @@ class Schedule:
     """How long the run is and what it starts from."""
     iterations: int | None = None  # None: scaled to the problem size
                                    # (mi_grg.training.trainer.iteration_rule)
+    horizon: int | None = None     # length of the schedule (learning-rate decay to
+                                   # lr_final_ratio, densification window, held-out window,
+                                   # evaluation interval); None: the rule's count for the
+                                   # grid. A run shorter than it compresses the schedule into
+                                   # its own length; a longer one follows it, then trains
+                                   # every view at a rate that keeps decaying (so that more
+                                   # iterations converge rather than stretch the early,
+                                   # fast phase: docs/benchmarks.md, "More iterations")
     seed: int = 0                  # same seed, same run up to float atomics: the scatter-
                                    # adds sum in thread order, so volumes of two runs differ
                                    # slightly (docs/benchmarks.md)

@@ -19,6 +19,10 @@ value over ``max_steps`` steps and stays there (3DGS/R2-Gaussian ``get_expon_lr_
 
     lr(t) = lr0 * final_ratio ** (clip(t, 0, max_steps) / max_steps)
 
+or, with ``anneal=True``, goes on decaying past ``max_steps`` at the same log rate
+(``final_ratio`` per ``max_steps`` steps): a run longer than its schedule converges
+instead of going on at the final rate (``Schedule.horizon`` of the training config).
+
 ``rehorizon(at, max_steps)`` moves the end of the decay during a run (a run planned to a
 time budget, mi_grg.training.budget): from step ``at`` on, the exponent goes on from its
 value there and reaches 1 at the new ``max_steps``, so the rate never jumps. It may be
@@ -79,13 +83,15 @@ class Adam:
         max_steps: steps over which each lr decays to ``final_ratio`` of its initial
             value (R2-Gaussian: 30000 = its iteration count); afterwards constant.
         final_ratio: lr(max_steps) / lr0; 0.1 as in the paper.
+        anneal: past ``max_steps`` the rate keeps decaying, by ``final_ratio`` every
+            ``max_steps`` steps, instead of staying at ``final_ratio``.
         check_finite: if True, every step raises on NaN/Inf gradients (one host sync per
             group and step; off by default for speed).
     """
 
     def __init__(self, lr: dict | None = None, betas=(0.9, 0.999), eps: float = 1e-15,
                  max_steps: int = 30000, final_ratio: float = 0.1,
-                 check_finite: bool = False):
+                 check_finite: bool = False, anneal: bool = False):
         lr = dict(DEFAULT_LR if lr is None else lr)
         for name, value in lr.items():
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -105,16 +111,17 @@ class Adam:
         self.max_steps = int(max_steps)
         self.knots = []         # [(step, exponent)] where rehorizon() moved the decay's end
         self.final_ratio = float(final_ratio)
+        self.anneal = bool(anneal)
         self.check_finite = bool(check_finite)
         self.state: dict[str, GroupState] = {}   # created on a group's first step
 
     @classmethod
-    def from_train_config(cls, cfg, max_steps: int) -> "Adam":
+    def from_train_config(cls, cfg, max_steps: int, anneal: bool = False) -> "Adam":
         """From a ``mi_grg.training.config.TrainConfig`` (lr_position, lr_density, lr_scale,
         lr_rotation, lr_final_ratio); ``max_steps``: the decay horizon (iterations)."""
         return cls(lr={"positions": cfg.optim.lr_position, "raw_densities": cfg.optim.lr_density,
                        "raw_scales": cfg.optim.lr_scale, "raw_rotations": cfg.optim.lr_rotation},
-                   max_steps=max_steps, final_ratio=cfg.optim.lr_final_ratio)
+                   max_steps=max_steps, final_ratio=cfg.optim.lr_final_ratio, anneal=anneal)
 
     # ------------------------------------------------------------------ schedule
     @property
@@ -127,7 +134,10 @@ class Adam:
         return self.lr0[name] * self.final_ratio ** self._exponent(step)
 
     def _exponent(self, step: int | float) -> float:
-        """How far the decay is at ``step``: 0 at the start, 1 from ``max_steps`` on."""
+        """How far the decay is at ``step``: 0 at the start, 1 at ``max_steps``; past it 1
+        (or, annealing, 1 more every ``max_steps`` steps)."""
+        if self.anneal and step > self.max_steps:
+            return 1.0 + (float(step) - self.max_steps) / self.max_steps
         t = min(max(float(step), 0.0), float(self.max_steps))
         t0, e0 = 0.0, 0.0
         for t1, e1 in self.knots + [(self.max_steps, 1.0)]:

@@ -10,7 +10,11 @@
     (``mi_grg.protocol.views``).
 
 The iteration count comes from ``iteration_rule`` (or ``iterations``), or is planned to a
-wall-clock ``time_budget`` (``mi_grg.training.budget``); the schedule scales with it.
+wall-clock ``time_budget`` (``mi_grg.training.budget``); the schedule scales with it up to
+the ``horizon`` (the rule's count unless set): a longer run follows the horizon's schedule
+and then trains every view at a learning rate that keeps decaying, so that more iterations
+converge instead of stretching the fast early phase (docs/benchmarks.md, "More
+iterations").
 
 Every component is switched by ``TrainConfig`` (``mi_grg.training.config``), so one loop runs
 R2-Gaussian (``--method r2``), GR-Gaussian (``--method gr``) and every ablation between.
@@ -79,8 +83,9 @@ def iteration_rule(geometry) -> int:
     the sparse needles peak early and lose a little, which no projection-domain measure
     we found tells apart (docs/benchmarks.md, "The rule at 128^3" and "The iteration rule
     re-derived"). 256^3 keeps the 6000 it had. The schedule (densification window,
-    evaluation interval) scales with the count (``_scaled``); ``time_budget`` plans the
-    count to a wall-clock budget instead; ``iterations=1500`` suits sparse objects.
+    evaluation interval) scales with the count (``_scaled``), up to this count (the
+    default ``horizon``); ``time_budget`` plans the count to a wall-clock budget instead;
+    ``iterations=1500`` suits sparse objects.
     """
     return iterations_for_size(max(geometry.nVoxel))
 
@@ -272,22 +277,30 @@ class Trainer:
         from mi_grg.training.optim import Adam
         cfg, geo = self.cfg, self.case.geometry
         self.iterations = int(iterations)
-        # The config's schedule is the paper's, for 30k iterations: scale it to this run.
-        self.sched = sched = _scaled(cfg, self.iterations)
+        self.horizon = (cfg.schedule.horizon if cfg.schedule.horizon is not None
+                        else iteration_rule(geo))
+        # The config's schedule is the paper's, for 30k iterations: scale it to this run's
+        # (or, for a longer run, to the horizon's).
+        self.sched = sched = _scaled(cfg, self._scheduled(self.iterations))
         # Views: held out while the stop rule decides, then trained, so that every view
         # counts (docs/benchmarks.md, "Every view counts"); the research rule monitor_3d
         # judges the ground truth, so there the views stay held out.
         self.views = ViewProtocol(geo.n_views, cfg.protocol.holdout_every,
                                   1.0 if cfg.protocol.monitor_3d else cfg.protocol.holdout_until,
                                   self.iterations, sched["eval_every"],
-                                  cfg.protocol.holdout_catch_up)
+                                  cfg.protocol.holdout_catch_up, horizon=self.horizon)
         # The config's window and cap are the paper's; this run's depend on its length and grid.
         dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
                                    start=sched["densify_start"],
                                    stop=sched["densify_stop"], interval=sched["densify_interval"],
                                    max_count=gaussian_cap(cfg, geo))
         self.densifier = PGADensifier(dcfg, seed=cfg.schedule.seed)
-        self.optimizer = Adam.from_train_config(cfg, max_steps=self.iterations)
+        self.optimizer = Adam.from_train_config(cfg, max_steps=self._scheduled(self.iterations),
+                                                anneal=True)
+
+    def _scheduled(self, iterations: int) -> int:
+        """The length the schedule is scaled to: the run's, at most the horizon."""
+        return min(int(iterations), self.horizon)
 
     def _budget_planner(self) -> BudgetPlanner:
         """The time_budget planner of this run, on the state's plan (a resumed run's)."""
@@ -295,7 +308,8 @@ class Trainer:
             return dataclasses.replace(self.views, iterations=iterations,
                                        eval_every=eval_every).window_end
         return BudgetPlanner(self.cfg.run.time_budget, gaussian_cap(self.cfg, self.case.geometry),
-                             lambda iterations: _scaled(self.cfg, iterations), window_end,
+                             lambda iterations: _scaled(self.cfg, self._scheduled(iterations)),
+                             window_end,
                              self._logs_3d, plan=self.state.time_plan)
 
     def _replan(self, it: int, seconds: float, n: int) -> None:
@@ -312,7 +326,9 @@ class Trainer:
         evaluation intervals stay as first planned."""
         self.iterations = int(iterations)
         self.views = dataclasses.replace(self.views, iterations=self.iterations)
-        self.optimizer.rehorizon(at, self.iterations)
+        end = self._scheduled(self.iterations)
+        if at < min(end, self.optimizer.max_steps):   # else the decay is past its end
+            self.optimizer.rehorizon(at, end)
         if densify_stop is not None:
             self.sched["densify_stop"] = int(densify_stop)
             self.densifier.config = dataclasses.replace(self.densifier.config,
@@ -664,7 +680,9 @@ class Trainer:
                    "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
                                          else None),
                    "n_gaussians": dr.width(final["raw_densities"]),
-                   "train_seconds": st.seconds, "schedule": self.sched,
+                   "train_seconds": st.seconds,
+                   "schedule": {**self.sched, "horizon": self.horizon,
+                                "scaled_to": self._scheduled(self.iterations)},
                    "checkpoint_every": checkpoint_interval(cfg.run.checkpoint_every,
                                                            self.iterations),
                    # wall clock of the earlier calls of a resumed run, to its checkpoint
