@@ -338,6 +338,13 @@ def test_fair_margin_oracle_and_anytime_tables(tmp_path):
     assert [round(d, 6) for _, _, d in mg["fixed"]] == [4.0, 4.5]
     line = summary_lines(out)[3]
     assert "+1.25 dB on average over 2 case(s)" in line and "+4.25 dB" in line
+    # PDHG under Morozov's rule is a fair row too: where it is best, the margin is to it
+    _fake_run(out, "table1", "b", "pdhg-morozov", "HO", "pdhg", psnr_3d=30.25, ssim_3d=0.8,
+              seconds=10.0, method_info=held)
+    mg = classical_margin(load_runs(out)["table1"])
+    assert [(c, m, round(d, 6)) for c, m, d in mg["heldout"]] == [("a", "asd-pocs", 2.0),
+                                                                  ("b", "pdhg-morozov", 0.25)]
+    assert "PDHG (Morozov) 10.0 s" in summary_lines(out)[2]   # not "PDHG" twice
     h, b = oracle_rows(rows)
     assert b[0] == ["a", "asd-pocs", "29.00", "alpha=0.02, 7 sweeps", "29.50 (5)", "0.50"]
     h, b = anytime_table(rows)
@@ -423,8 +430,9 @@ def test_repo_suites_are_valid():
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
     t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
-    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, r2, gr, gr-paper
-    assert len(t1) == 9 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, pdhg-morozov, r2, gr, gr-paper
+    assert len(t1) == 10 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    assert {r["run"] for r in t1 if r["run"].startswith("pdhg")} == {"pdhg", "pdhg-morozov"}
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
 

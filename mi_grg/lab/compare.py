@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 #: Held-out-stopped classical runs that compete for the "best classical" column.
-CLASSICAL_BEST = ("sart", "asd-pocs", "pdhg")
+CLASSICAL_BEST = ("sart", "asd-pocs", "pdhg", "pdhg-morozov")
 NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS", "pdhg": "PDHG",
          "r2": "r2", "gr": "gr"}
 #: The |error| maps' scale as a fraction of the ground truth's maximum.

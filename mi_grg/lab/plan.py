@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mi_grg.lab.curves import register_experiment_methods
-from mi_grg.lab.suite import (ALL_METHODS, CURVE_METHODS, EXPERIMENTS, FIXED_ROWS,
+from mi_grg.lab.suite import (ALL_METHODS, CURVE_METHODS, EXPERIMENTS, FIXED_ROWS, RULE_ROWS,
                               NOSTOP_DROP, TRAINED, CaseSpec, Suite)
 
 
@@ -128,6 +128,9 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
                 if m in FIXED_ROWS:
                     add(case, f"{m}-fixed", m, _opts(suite, m, **FIXED_ROWS[m]),
                         f"{m} (fixed {FIXED_ROWS[m]['n_iter']} sweeps)")
+                if m in RULE_ROWS:
+                    run, options, label = RULE_ROWS[m]
+                    add(case, run, m, _opts(suite, m, **options), label)
         elif name == "table2":
             for run, m, o, label in table2_variants():
                 add(case, run, m, _opts(suite, m, **o), label)

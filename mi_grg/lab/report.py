@@ -21,13 +21,20 @@ import numpy as np
 
 DASH = "—"
 CATS = ("HO", "BS", "AO")
-METHOD_ORDER = ("fdk", "sart", "asd-pocs", "pdhg", "sart-fixed", "asd-pocs-fixed", "r2", "gr")
+METHOD_ORDER = ("fdk", "sart", "asd-pocs", "pdhg", "pdhg-morozov", "sart-fixed",
+                "asd-pocs-fixed", "r2", "gr-paper", "gr")
 METHOD_NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS", "pdhg": "PDHG (TV)",
+                "pdhg-morozov": "PDHG (TV, weight by Morozov's rule)",
                 "sart-fixed": "SART (fixed 10 sweeps)",
                 "asd-pocs-fixed": "ASD-POCS (fixed 10 sweeps)",
-                "r2": "R2-Gaussian (r2)", "gr": "GR-Gaussian (gr)"}
+                "r2": "R2-Gaussian (r2)",
+                "gr-paper": "GR-Gaussian, the paper's configuration (gr-paper)",
+                "gr": "GR-Gaussian (gr)"}
+#: Names in the summary's time line where the first words of METHOD_NAMES are ambiguous.
+SHORT_NAMES = {"pdhg-morozov": "PDHG (Morozov)", "gr-paper": "GR-Gaussian (paper)"}
 #: Classical methods (every row of theirs competes with gr in the summary's margin).
-CLASSICAL = ("fdk", "sart", "asd-pocs", "pdhg", "sart-fixed", "asd-pocs-fixed")
+CLASSICAL = ("fdk", "sart", "asd-pocs", "pdhg", "pdhg-morozov", "sart-fixed",
+             "asd-pocs-fixed")
 #: Time budgets of the any-time table (seconds).
 BUDGETS = (1, 10, 60, 300)
 
@@ -677,7 +684,8 @@ def summary_lines(out_dir) -> list:
     done = [c for c, _ in complete_cases(rows)]
     times = {m: _mean_all([_value(idx.get((c, m)), "seconds") for c in done])
              for m in METHOD_ORDER}
-    parts = [f"{METHOD_NAMES[m].split(' (')[0]}{' (fixed)' if m.endswith('-fixed') else ''} "
+    parts = [f"{SHORT_NAMES.get(m) or METHOD_NAMES[m].split(' (')[0]}"
+             f"{' (fixed)' if m.endswith('-fixed') else ''} "
              f"{_fmt_time(t)} s" for m, t in times.items() if t is not None]
     ratio = ""
     if times.get("gr") and times.get("r2"):

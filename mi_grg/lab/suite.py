@@ -26,6 +26,11 @@ CURVE_METHODS = {"sart": "sart-curve", "asd-pocs": "asd-pocs-curve", "pdhg": "pd
 #: (their default stops on held-out views, mi_grg.protocol.heldout).
 FIXED_ROWS = {"sart": {"n_iter": 10, "stop": "none"},
               "asd-pocs": {"n_iter": 10, "stop": "none"}}
+#: Table 1's extra row per method under another decision rule: run name, options, label.
+#: PDHG's TV weight by Morozov's discrepancy principle (gr's refinement's rule), so that
+#: gr is measured against the better of PDHG's two rules on each case.
+RULE_ROWS = {"pdhg": ("pdhg-morozov", {"lam_rule": "morozov"},
+                      "pdhg (TV weight by Morozov's rule)")}
 NOSTOP_DROP = 0.99                   # stop_drop that never triggers (iteration analysis)
 
 
