@@ -48,6 +48,12 @@ def test_best_classical_is_the_best_held_out_stopped_run(tmp_path):
         ("FDK", "fdk"), ("best classical: ASD-POCS", "asd-pocs"), ("r2", "r2"), ("gr", "gr")]
 
 
+def test_pdhg_under_morozovs_rule_competes_for_best_classical(tmp_path):
+    out = _results(tmp_path, {**RUNS, "pdhg-morozov": (27.5, 0.45)})
+    picks = pick_runs(_rows(out), "shepp")
+    assert picks[1][0] == "best classical: PDHG (Morozov)" and picks[1][1]["run"] == "pdhg-morozov"
+
+
 def test_missing_runs_leave_their_column_out(tmp_path):
     runs = {k: v for k, v in RUNS.items() if k in ("pdhg", "gr")}
     out = _results(tmp_path, runs)

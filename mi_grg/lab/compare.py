@@ -1,6 +1,6 @@
 """Per case, the methods side by side where people compare them: the central z slice of the
 ground truth, FDK, the best fairly stopped classical method (by 3-D PSNR among SART,
-ASD-POCS and PDHG), r2 and gr on one grey scale, and their |error| maps below (one scale
+ASD-POCS and PDHG under either weight rule), r2 and gr on one grey scale, and their |error| maps below (one scale
 too). ``comparison_section`` gives the report's markdown and writes one PNG per case."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 #: Held-out-stopped classical runs that compete for the "best classical" column.
 CLASSICAL_BEST = ("sart", "asd-pocs", "pdhg", "pdhg-morozov")
 NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS", "pdhg": "PDHG",
-         "r2": "r2", "gr": "gr"}
+         "pdhg-morozov": "PDHG (Morozov)", "r2": "r2", "gr": "gr"}
 #: The |error| maps' scale as a fraction of the ground truth's maximum.
 ERROR_FRACTION = 0.25
 
@@ -87,6 +87,7 @@ def comparison_section(out_dir, rows, img_dir: Path, rel: str) -> list:
     if not figures:
         return md + ["No case has both a ground truth and a finished run.", ""]
     return md + ["Central z slice of each case: ground truth, FDK, the best of SART / "
-                 "ASD-POCS / PDHG (held-out stopped, by 3-D PSNR), r2 and gr on one grey "
+                 "ASD-POCS / PDHG under either weight rule (held-out stopped, by 3-D PSNR), r2 "
+                 "and gr on one grey "
                  "scale (0 to the ground truth's maximum); below, |error| on 0 to "
                  f"{ERROR_FRACTION:g} x that maximum.", ""] + figures
