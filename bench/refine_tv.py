@@ -4,8 +4,9 @@ classical method, case by case.
 For each case of bench/fair_baselines.py's data sets (experiments/suite_cpu.json, 64^3, 25
 noisy views): gr trains at its defaults without refinement and its final volume and the
 state it kept before the held-out views joined are saved ($TMPDIR/refine_tv/CASE, reused
-by a later run); then ``mi_grg.training.refine.refine_volume`` refines them, which is
-exactly what ``refine="tv"`` runs after training. Both rows are compared with the best
+by a later run; with holdout_every=0 the kept state comes from the refinement's decision
+run); then ``mi_grg.training.refine.refine_volume`` refines them, which is exactly what
+``refine="tv"`` runs after training. Both rows are compared with the best
 held-out row of SART, ASD-POCS and PDHG in docs/bench/fair_baselines.json. The 3-D PSNR
 against the ground truth is scored here only; no decision reads it.
 
@@ -38,6 +39,7 @@ def train(case, folder: Path, options: dict) -> dict:
     """gr at its defaults and ``options``, without refinement: final.npy, kept.npy (None
     without a kept state) and info.json in folder."""
     from mi_grg.evaluation.metrics import psnr_3d
+    from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.training.config import make_config
     from mi_grg.training.trainer import Trainer
     t0 = time.perf_counter()
@@ -48,6 +50,15 @@ def train(case, folder: Path, options: dict) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     if tr.state.kept_raw is not None:
         np.save(folder / "kept.npy", tr.volume(tr.state.kept_raw, tr.state.kept_density_scale))
+    elif tr.cfg.protocol.holdout_every == 0:    # refine="tv"'s decision run, as it runs it
+        every = STOP_RULE.holdout_every
+        dec = Trainer(case, make_config("gr", None, **{**options, "refine": "none",
+                                                       "holdout_every": every}),
+                      progress=False)
+        dec.run()
+        if dec.state.kept_raw is not None:
+            np.save(folder / "kept.npy",
+                    dec.volume(dec.state.kept_raw, dec.state.kept_density_scale))
     np.save(folder / "final.npy", final)
     info = {"seconds": time.perf_counter() - t0, "psnr_final": psnr_3d(final, case.vol_gt),
             "kept_it": summary["kept_iteration"], "stopped": summary["stopped_by"],
@@ -61,6 +72,7 @@ def run_case(name: str, suite, data_root: Path, runs: Path, options: dict) -> di
     from mi_grg.data.units import data_range
     from mi_grg.lab.runner import suite_case
     from mi_grg.methods import code_version, score
+    from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.training.refine import refine_volume
     case = suite_case(suite.case(name), data_root)
     folder = runs / name
@@ -69,10 +81,11 @@ def run_case(name: str, suite, data_root: Path, runs: Path, options: dict) -> di
     final = np.load(folder / "final.npy")
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    if info.get("holdout_every", 8) and (folder / "kept.npy").exists():
+    if (folder / "kept.npy").exists():      # without held-out views: the decision run's
+        every = info.get("holdout_every", 8) or STOP_RULE.holdout_every
         vol, r = refine_volume(case, np.load(folder / "kept.npy"), final,
-                               holdout_every=info.get("holdout_every", 8), progress=False)
-    else:   # what refine="tv" does without held-out views: nothing (it says so)
+                               holdout_every=every, progress=False)
+    else:   # no state to decide from: refine="tv" does nothing (it says so)
         vol, r = final, {"lam": 0.0, "iterations": 0, "noise_mse": float("nan"),
                          "heldout_mse": {"start": float("nan"), "refined": float("nan")}}
     seconds = time.perf_counter() - t0

@@ -129,8 +129,47 @@ def test_gr_refine_option(tiny_case, capsys):
     else:
         assert not np.array_equal(vol, plain)
     capsys.readouterr()
+    # without held-out views a decision run needs the stop rule's split: 6 views are too few
     _, m = reconstruct(tiny_case, "gr", refine="tv", **{**opts, "holdout_every": 0})
     assert "holdout_every=0" in m["method_info"]["refine"]["skipped"]
     assert "refine=tv did nothing: no held-out views" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="refine must be one of"):
         reconstruct(tiny_case, "gr", refine="blur", **opts)
+
+
+def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkeypatch):
+    """holdout_every=0: the run trains every view from the start; a second run with the stop
+    rule's split (here one view in 3, as 6 views allow) gives the state its decisions start
+    from, and the first run's own final volume is refined: the same decisions and volume
+    as refine_volume on those two volumes."""
+    import dataclasses
+
+    from mi_grg.methods import reconstruct
+    from mi_grg.protocol import early_stop
+    from mi_grg.training.config import make_config
+    from mi_grg.training.refine import refine_volume
+    from mi_grg.training.trainer import Trainer
+    monkeypatch.setattr(early_stop, "STOP_RULE",
+                        dataclasses.replace(early_stop.STOP_RULE, holdout_every=3))
+    opts = dict(iterations=300, n_points=300, eval_every=200)
+    vol, m = reconstruct(tiny_case, "gr", refine="tv", holdout_every=0, progress=False,
+                         **opts)
+    r = m["method_info"]["refine"]
+    assert "skipped" not in r and r["decision_run"]["held_out_views"] == [1, 4]
+    assert r["held_out_views"] == [1, 4]
+    assert "a decision run (holdout_every=3)" in capsys.readouterr().err
+    # the same two trainings by hand (same seed: equal up to float atomics)
+    final = Trainer(tiny_case, make_config("gr", holdout_every=0, refine="none", **opts),
+                    progress=False)
+    final.run()
+    dec = Trainer(tiny_case, make_config("gr", holdout_every=3, refine="none", **opts),
+                  progress=False)
+    dec.run()
+    kept = dec.volume(dec.state.kept_raw, dec.state.kept_density_scale)
+    ref, info = refine_volume(tiny_case, kept, final.volume(), holdout_every=3,
+                              progress=False)
+    assert (info["lam"], info["iterations"]) == (r["lam"], r["iterations"])
+    np.testing.assert_allclose(vol, ref, atol=1e-3 * float(np.max(ref)))
+    budget = reconstruct(tiny_case, "gr", refine="tv", holdout_every=0, progress=False,
+                         time_budget=30, n_points=300)[1]["method_info"]["refine"]
+    assert "time_budget" in budget["skipped"]

@@ -1,7 +1,8 @@
 """Per case, the methods side by side where people compare them: the central z slice of the
 ground truth, FDK, the best fairly stopped classical method (by 3-D PSNR among SART,
-ASD-POCS and PDHG under either weight rule), r2 and gr on one grey scale, and their |error| maps below (one scale
-too). ``comparison_section`` gives the report's markdown and writes one PNG per case."""
+ASD-POCS and PDHG under either weight rule), r2 and gr on one grey scale, and their |error|
+maps below (one scale too). ``comparison_section`` gives the report's markdown and writes
+one PNG per case."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -88,6 +89,6 @@ def comparison_section(out_dir, rows, img_dir: Path, rel: str) -> list:
         return md + ["No case has both a ground truth and a finished run.", ""]
     return md + ["Central z slice of each case: ground truth, FDK, the best of SART / "
                  "ASD-POCS / PDHG under either weight rule (held-out stopped, by 3-D PSNR), r2 "
-                 "and gr on one grey "
-                 "scale (0 to the ground truth's maximum); below, |error| on 0 to "
+                 "and gr on one grey scale (0 to the ground truth's maximum); below, |error| "
+                 "on 0 to "
                  f"{ERROR_FRACTION:g} x that maximum.", ""] + figures

@@ -25,10 +25,20 @@ directions no view sees (on some scans the 3-D PSNR fell by several dB meanwhile
 fitted residual falling below the noise level is what shows it (docs/benchmarks.md, "TV
 refinement").
 
+Without held-out views (``holdout_every=0``: every view trained from the start) no state of
+the run is unseen by any view, so a *decision run* decides instead: the same configuration
+with the stop rule's split (one view in 8 held out until 2/3 of the schedule), whose kept
+state takes the place of the run's in steps 1-2; step 3 refines the run's own final state.
+It costs a second training; a scan too small for that split is returned unrefined, and the
+record says why.
+
 ``gaussians.npz`` / ``.ply`` of a refined run hold the field before refinement: the
 refined volume is a voxel grid.
 """
 from __future__ import annotations
+
+import sys
+import time
 
 import numpy as np
 
@@ -42,7 +52,7 @@ def refine_tv(trainer, progress: bool = True) -> tuple:
     final = trainer.volume()
     st, held = trainer.state, trainer.held_idx
     if len(held) == 0:
-        return final, {"skipped": "no held-out views to decide on (holdout_every=0)"}
+        return _refine_by_decision_run(trainer, final, progress)
     if st.kept_raw is None:
         return final, {"skipped": "no state kept before the held-out views joined"}
     kept = trainer.volume(st.kept_raw, st.kept_density_scale)
@@ -51,6 +61,40 @@ def refine_tv(trainer, progress: bool = True) -> tuple:
                               progress=progress)
     if not np.array_equal(np.asarray(info["held_out_views"]), np.asarray(held)):
         raise RuntimeError("refine: the decision's held-out views differ from training's")
+    return vol, info
+
+
+def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple:
+    """``refine_tv`` for a run without held-out views: a decision run (module docstring)
+    gives the kept state, ``final`` is refined. ``info["decision_run"]`` records it."""
+    from mi_grg.protocol.early_stop import STOP_RULE
+    from mi_grg.protocol.split import decision_split
+    from mi_grg.training.config import TrainConfig
+    from mi_grg.training.trainer import Trainer
+    every = STOP_RULE.holdout_every
+    if trainer.cfg.run.time_budget is not None:
+        return final, {"skipped": "no held-out views to decide on (holdout_every=0), and a "
+                                  "decision run would train past the time_budget"}
+    try:
+        decision_split(trainer.case.geometry.n_views, every, "refine=tv's decision run")
+    except ValueError as e:
+        return final, {"skipped": f"no held-out views to decide on (holdout_every=0), and {e}"}
+    cfg = TrainConfig.from_flat({**trainer.cfg.to_flat(), "holdout_every": every,
+                                 "refine": "none", "checkpoint_every": None})
+    print(f"refine=tv with holdout_every=0: a decision run (holdout_every={every}) decides "
+          "the refinement; it trains a second time", file=sys.stderr)
+    t0 = time.perf_counter()
+    run = Trainer(trainer.case, cfg, progress=progress)
+    summary = run.run()
+    if run.state.kept_raw is None:
+        return final, {"skipped": "no held-out views to decide on (holdout_every=0), and the "
+                                  "decision run kept no state before its views joined"}
+    kept = run.volume(run.state.kept_raw, run.state.kept_density_scale)
+    vol, info = refine_volume(trainer.case, kept, final, holdout_every=every,
+                              progress=progress)
+    info["decision_run"] = {"holdout_every": every, "seconds": time.perf_counter() - t0,
+                            "kept_iteration": summary["kept_iteration"],
+                            "held_out_views": run.held_idx.tolist()}
     return vol, info
 
 
