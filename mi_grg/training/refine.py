@@ -70,7 +70,6 @@ def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple
     from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.protocol.split import decision_split
     from mi_grg.training.config import TrainConfig
-    from mi_grg.training.trainer import Trainer
     every = STOP_RULE.holdout_every
     if trainer.cfg.run.time_budget is not None:
         return final, {"skipped": "no held-out views to decide on (holdout_every=0), and a "
@@ -84,7 +83,8 @@ def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple
     print(f"refine=tv with holdout_every=0: a decision run (holdout_every={every}) decides "
           "the refinement; it trains a second time", file=sys.stderr)
     t0 = time.perf_counter()
-    run = Trainer(trainer.case, cfg, progress=progress)
+    # type(trainer), not an import: the trainer module imports this one
+    run = type(trainer)(trainer.case, cfg, progress=progress)
     summary = run.run()
     if run.state.kept_raw is None:
         return final, {"skipped": "no held-out views to decide on (holdout_every=0), and the "
