@@ -48,7 +48,8 @@ from mi_grg.classical.pdhg import reconstruct_pdhg
 def refine_tv(trainer, progress: bool = True) -> tuple:
     """(volume [x, y, z] float32, info) for a finished ``Trainer``: its final volume refined
     as the module docstring says, or unchanged with the reason in ``info["skipped"]`` when
-    nothing can decide (no held-out views, or no state kept before they joined)."""
+    nothing can decide (no state kept before the held-out views joined; without held-out
+    views, no decision run possible)."""
     final = trainer.volume()
     st, held = trainer.state, trainer.held_idx
     if len(held) == 0:
@@ -79,7 +80,7 @@ def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple
     except ValueError as e:
         return final, {"skipped": f"no held-out views to decide on (holdout_every=0), and {e}"}
     cfg = TrainConfig.from_flat({**trainer.cfg.to_flat(), "holdout_every": every,
-                                 "refine": "none", "checkpoint_every": None})
+                                 "refine": "none"})
     print(f"refine=tv with holdout_every=0: a decision run (holdout_every={every}) decides "
           "the refinement; it trains a second time", file=sys.stderr)
     t0 = time.perf_counter()
