@@ -39,8 +39,8 @@ def train(case, folder: Path, options: dict) -> dict:
     """gr at its defaults and ``options``, without refinement: final.npy, kept.npy (None
     without a kept state) and info.json in folder."""
     from mi_grg.evaluation.metrics import psnr_3d
-    from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.training.config import make_config
+    from mi_grg.training.refine import decision_run
     from mi_grg.training.trainer import Trainer
     t0 = time.perf_counter()
     tr = Trainer(case, make_config("gr", None, **{**options, "refine": "none"}),
@@ -50,15 +50,10 @@ def train(case, folder: Path, options: dict) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     if tr.state.kept_raw is not None:
         np.save(folder / "kept.npy", tr.volume(tr.state.kept_raw, tr.state.kept_density_scale))
-    elif tr.cfg.protocol.holdout_every == 0:    # refine="tv"'s decision run, as it runs it
-        every = STOP_RULE.holdout_every
-        dec = Trainer(case, make_config("gr", None, **{**options, "refine": "none",
-                                                       "holdout_every": every}),
-                      progress=False)
-        dec.run()
-        if dec.state.kept_raw is not None:
-            np.save(folder / "kept.npy",
-                    dec.volume(dec.state.kept_raw, dec.state.kept_density_scale))
+    elif tr.cfg.protocol.holdout_every == 0:    # refine="tv"'s decision run
+        kept, _ = decision_run(tr, progress=False)
+        if kept is not None:
+            np.save(folder / "kept.npy", kept)
     np.save(folder / "final.npy", final)
     info = {"seconds": time.perf_counter() - t0, "psnr_final": psnr_3d(final, case.vol_gt),
             "kept_it": summary["kept_iteration"], "stopped": summary["stopped_by"],

@@ -66,19 +66,32 @@ def refine_tv(trainer, progress: bool = True) -> tuple:
 
 
 def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple:
-    """``refine_tv`` for a run without held-out views: a decision run (module docstring)
-    gives the kept state, ``final`` is refined. ``info["decision_run"]`` records it."""
+    """``refine_tv`` for a run without held-out views: the decision run's kept state
+    decides, ``final`` is refined. ``info["decision_run"]`` records it."""
+    kept, record = decision_run(trainer, progress)
+    if kept is None:
+        return final, {"skipped": record["skipped"]}
+    vol, info = refine_volume(trainer.case, kept, final, holdout_every=record["holdout_every"],
+                              progress=progress)
+    info["decision_run"] = record
+    return vol, info
+
+
+def decision_run(trainer, progress: bool = True) -> tuple:
+    """(kept volume [x, y, z] or None, record) of the decision run (module docstring) for a
+    finished run without held-out views; None with the reason in ``record["skipped"]``
+    when none can be made (a time_budget, too few views for the split, no kept state)."""
     from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.protocol.split import decision_split
     from mi_grg.training.config import TrainConfig
     every = STOP_RULE.holdout_every
+    why = "no held-out views to decide on (holdout_every=0), and "
     if trainer.cfg.run.time_budget is not None:
-        return final, {"skipped": "no held-out views to decide on (holdout_every=0), and a "
-                                  "decision run would train past the time_budget"}
+        return None, {"skipped": why + "a decision run would train past the time_budget"}
     try:
         decision_split(trainer.case.geometry.n_views, every, "refine=tv's decision run")
     except ValueError as e:
-        return final, {"skipped": f"no held-out views to decide on (holdout_every=0), and {e}"}
+        return None, {"skipped": why + str(e)}
     cfg = TrainConfig.from_flat({**trainer.cfg.to_flat(), "holdout_every": every,
                                  "refine": "none"})
     print(f"refine=tv with holdout_every=0: a decision run (holdout_every={every}) decides "
@@ -88,15 +101,12 @@ def _refine_by_decision_run(trainer, final: np.ndarray, progress: bool) -> tuple
     run = type(trainer)(trainer.case, cfg, progress=progress)
     summary = run.run()
     if run.state.kept_raw is None:
-        return final, {"skipped": "no held-out views to decide on (holdout_every=0), and the "
-                                  "decision run kept no state before its views joined"}
+        return None, {"skipped": why + "the decision run kept no state before its views "
+                                       "joined"}
     kept = run.volume(run.state.kept_raw, run.state.kept_density_scale)
-    vol, info = refine_volume(trainer.case, kept, final, holdout_every=every,
-                              progress=progress)
-    info["decision_run"] = {"holdout_every": every, "seconds": time.perf_counter() - t0,
-                            "kept_iteration": summary["kept_iteration"],
-                            "held_out_views": run.held_idx.tolist()}
-    return vol, info
+    return kept, {"holdout_every": every, "seconds": time.perf_counter() - t0,
+                  "kept_iteration": summary["kept_iteration"],
+                  "held_out_views": run.held_idx.tolist()}
 
 
 def refine_volume(case, kept: np.ndarray, final: np.ndarray, *, holdout_every: int,
