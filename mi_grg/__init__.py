@@ -11,8 +11,28 @@ from mi_grg._llvm import LLVMNotFoundError, configure_llvm as _configure_llvm
 
 __version__ = "0.1.0"
 
+
+def _one_line_if_uncaught(error: Exception) -> None:
+    """A set-up error of this machine (MI_GRG_VARIANT, libLLVM) that nothing catches
+    reaches the terminal as one line: the ``mi-grg`` command imports the package before
+    its own error handling can run."""
+    import sys
+    previous = sys.excepthook
+
+    def hook(kind, value, tb):
+        if value is error:
+            print(f"mi-grg: error: {value}", file=sys.stderr)
+        else:
+            previous(kind, value, tb)
+    sys.excepthook = hook
+
+
 _requested = _os.environ.get("MI_GRG_VARIANT", "llvm_ad_mono")
-_configure_llvm(required=_requested.startswith("llvm"))
+try:
+    _configure_llvm(required=_requested.startswith("llvm"))
+except LLVMNotFoundError as _e:
+    _one_line_if_uncaught(_e)
+    raise
 
 import mitsuba as _mi  # noqa: E402  (after DRJIT_LIBLLVM_PATH is set)
 
@@ -39,7 +59,13 @@ def _register_plugins(name: str) -> None:
 
 # Here, not in mi_grg.variant: the plugins import core and data, which sit above it.
 on_set_variant(_register_plugins)
-set_variant(_requested)
+try:
+    set_variant(_requested)
+except ValueError as _e:
+    from mi_grg.variant import VariantError as _VariantError
+    _error = _VariantError(f"MI_GRG_VARIANT={_requested!r}: {_e}")
+    _one_line_if_uncaught(_error)
+    raise _error from None
 
 from mi_grg.core.geometry import Geometry  # noqa: E402
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import errno
 import json
-import shutil
+import os
 import sys
 import time
 import zipfile
@@ -111,14 +111,13 @@ def _default_scan(args):
 
 
 def cmd_simulate(args) -> int:
+    from mi_grg.data import outputs
     from mi_grg.data.dataset import save_case
     from mi_grg.data.noise import NoiseModel
-    from mi_grg.data.outputs import check_replaceable, replaced_dir
     from mi_grg.data.scene import load_scan, scan_to_xml
-    from mi_grg.data.simulate import simulate_case
+    from mi_grg.data.simulate import check_simulation_memory, simulate_case
 
-    _check_out(args, [args.scene])
-    check_replaceable(args.out, overwrite=True)   # a data set, not any other folder
+    outputs.check_out(args.out, outputs.SIMULATE, [args.scene])
     if args.scene:
         _refuse_scene_conflicts(args)
         # --views / --test-views are overrides that load_scan applies to the scan itself, so
@@ -131,6 +130,7 @@ def cmd_simulate(args) -> int:
     else:
         scan, seed = _default_scan(args)
     xml = scan_to_xml(scan)        # before simulating: a scan that cannot be written fails early
+    check_simulation_memory(scan.geometry, len(scan.test_angles), args.scene or "simulate")
     noise = (NoiseModel(I0=scan.noise["I0"], electronic_std=scan.noise["electronic_std"],
                         clip_negative=scan.noise["clip_negative"]) if scan.noise else None)
     t0 = time.perf_counter()
@@ -138,7 +138,7 @@ def cmd_simulate(args) -> int:
                          seed=seed, noise_seed=scan.noise["seed"] if scan.noise else None)
     case.info["scene"] = scan.info()          # echoed into metrics.json by reconstruct
     case.info["scene_xml"] = SCENE_XML
-    with replaced_dir(args.out, "simulate") as tmp:   # an earlier data set: replaced whole
+    with outputs.staged(args.out, outputs.SIMULATE) as tmp:   # an earlier one: replaced whole
         save_case(case, tmp, exr=args.exr)
         (tmp / SCENE_XML).write_text(xml)
     out = Path(args.out)
@@ -148,13 +148,6 @@ def cmd_simulate(args) -> int:
           f"noise {'off' if noise is None else noise.to_dict()}, seed {seed}; scan as "
           f"{out / SCENE_XML}) in {time.perf_counter() - t0:.1f} s")
     return 0
-
-
-def _check_out(args, inputs) -> None:
-    """--out writable and apart from the inputs (a run never writes into its data)."""
-    from mi_grg.data.outputs import check_apart, check_writable
-    check_writable(args.out)
-    check_apart(args.out, [p for p in inputs if p is not None])
 
 
 def _check_option_values(method: str, options: dict, raw: dict) -> None:
@@ -181,65 +174,37 @@ def _run_method(args, out_dir, formats, options, raw) -> tuple:
                            staged_for=args.out, **options)
     except (TypeError, ValueError) as e:
         texts = {k: raw[k] for k, v in options.items() if isinstance(v, str) and k in raw}
-        if not texts or any(k in str(e) for k in texts):
-            raise
-        named = {k: v for k, v in texts.items() if repr(v) in str(e)} or texts
-        texts = [f"{k}={v}" for k, v in named.items()]
+        named = {k: v for k, v in texts.items() if repr(v) in str(e)}
+        if not texts or any(k in str(e) for k in texts) or not (
+                named or isinstance(e, TypeError)):
+            raise                  # an error about something else than a text option
+        texts = [f"{k}={v}" for k, v in (named or texts).items()]
         raise ValueError(f"--option {', '.join(texts)}: passed as text, which the method "
                          f"could not use ({type(e).__name__}: {e}); expected a number, "
                          "true/false or JSON") from e
 
 
-#: Files that make a folder an earlier run (finished, or with the checkpoint of one that
-#: stopped), which a new run into it replaces whole.
-_RUN_FILES = ("metrics.json", "checkpoint.npz")
-
-
-def _prepare_out(args, options) -> Path | None:
-    """Repair what a killed run left beside --out, refuse an --out that is no earlier run,
-    and with --resume set options["resume"] to the checkpoint to continue: an interrupted
-    or killed run's, in its temporary beside --out (returned), else --out's own."""
-    from mi_grg.data.outputs import check_replaceable, clean_stale, resumable
-    out = Path(args.out)
-    source = resumable(out, "reconstruct", _RUN_FILES[1]) if args.resume else None
-    for note in clean_stale(out, "reconstruct", keep=[source.parent] if source else []):
-        print(f"note: {note}", file=sys.stderr)
-    check_replaceable(out, overwrite=True, markers=_RUN_FILES, what="an earlier run")
+def _staged_run(args, formats, options) -> dict:
+    """The run, written into a temporary beside --out that replaces --out only once it is
+    complete (``mi_grg.data.outputs.staged``); with --resume it continues the run that
+    stopped (its temporary's checkpoint), else --out's own checkpoint."""
+    from mi_grg.data import outputs
+    source = outputs.resume_source(args.out, outputs.RECONSTRUCT) if args.resume else None
+    outputs.check_out(args.out, outputs.RECONSTRUCT, [args.data, args.config],
+                      keep=[source.parent] if source else [])
     if args.resume:
         if source is not None:
             print(f"note: resuming from {source}, left by a run that stopped", file=sys.stderr)
-        options["resume"] = str(source if source is not None else out / _RUN_FILES[1])
-    return source
-
-
-def _staged_run(args, formats, options) -> dict:
-    """The run, written into a temporary beside --out that replaces --out only once it is
-    complete (an earlier output stays as it was until then); an interrupted run's
-    temporary is kept for --resume. The checkpoint a run resumed from is removed once a
-    newer one exists."""
-    from mi_grg.data.outputs import partial_dir, replaced_dir
-    source = _prepare_out(args, options)
-    consumed = source.parent if source is not None else None
-    try:
-        with replaced_dir(args.out, "reconstruct", keep=[consumed] if consumed else [],
-                          partial=_RUN_FILES[1]) as tmp:
-            _, metrics = _run_method(args, tmp, formats, options, _raw_options(args.option))
-    except KeyboardInterrupt:
-        newer = partial_dir(args.out) / _RUN_FILES[1]
-        if (consumed is not None and consumed != newer.parent and newer.is_file()
-                and newer.stat().st_mtime_ns > source.stat().st_mtime_ns):
-            shutil.rmtree(consumed, ignore_errors=True)
-        raise
-    if consumed is not None:
-        shutil.rmtree(consumed, ignore_errors=True)
-    return metrics
+        options["resume"] = str(source if source is not None
+                                else Path(args.out) / outputs.RECONSTRUCT.resumable)
+    with outputs.staged(args.out, outputs.RECONSTRUCT, resumed=source) as tmp:
+        return _run_method(args, tmp, formats, options, _raw_options(args.option))[1]
 
 
 def cmd_reconstruct(args) -> int:
     from mi_grg.data.export import parse_formats
     from mi_grg.methods import get_method
     formats = parse_formats(args.format)   # before any work
-    _check_out(args, [args.data, args.config])
     options = _parse_options(args.option)
     get_method(args.method)
     _check_option_values(args.method, options, _raw_options(args.option))
@@ -253,17 +218,19 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def cmd_render(args) -> int:
-    """Path-traced cross-check of a scene file or of a finished gr / r2 run; exit 1 when a
-    view fails (crosscheck.json and crosscheck.png say where). With --preview: a
-    Mitsuba-rendered 3-D view of a run's volume (mi_grg.evaluation.preview)."""
-    if args.preview:
-        from mi_grg.evaluation.preview import preview_command
-        return preview_command(args)
-    if args.out is None:
-        raise ValueError("--out DIR is required (only --preview writes into the run itself)")
-    args.spp = 256 if args.spp is None else args.spp
-    from mi_grg.evaluation import crosscheck as cc
+#: Bounds of render's options, checked before anything is written: past them a render
+#: takes hours or more memory than a workstation has.
+RENDER_BOUNDS = {"spp": 1 << 16, "views": 360, "det": 4096}
+
+
+def _check_render_options(args) -> None:
+    """render's flags, each checked alone (one-line errors naming the flag)."""
+    for key, top in RENDER_BOUNDS.items():
+        value = getattr(args, key)
+        if value is not None and not 1 <= value <= top:
+            raise ValueError(f"--{key} {value}: expected 1 to {top}")
+    if not 0.5 < args.confidence < 1.0:
+        raise ValueError(f"--confidence {args.confidence}: expected a value in (0.5, 1)")
     if (args.scene is None) == (args.run is None):
         raise ValueError("give a scene file (SCENE, e.g. scenes/shepp_cone_volpath.xml) or a "
                          "finished gr / r2 run (--run OUT_DIR), not both or neither")
@@ -272,14 +239,31 @@ def cmd_render(args) -> int:
     if args.scene is not None and run_only:
         raise ValueError(f"{', '.join(run_only)} only apply with --run (a scene file states "
                          "its own views and detector)")
-    _check_out(args, [args.scene, args.run, args.data])
-    if args.scene is not None:
-        res = cc.render_scene(args.scene, args.spp, args.out, seed=args.seed,
-                              confidence=args.confidence)
-    else:
-        res = cc.render_run(args.run, args.spp, args.out, views=args.views or 2,
-                            det=args.det or 32, data=args.data, seed=args.seed,
-                            confidence=args.confidence)
+
+
+def cmd_render(args) -> int:
+    """Path-traced cross-check of a scene file or of a finished gr / r2 run; exit 1 when a
+    view fails (crosscheck.json and crosscheck.png say where). With --preview: a
+    Mitsuba-rendered 3-D view of a run's volume (mi_grg.evaluation.preview). The output is
+    built beside --out and swapped in whole (``mi_grg.data.outputs``)."""
+    if args.preview:
+        from mi_grg.evaluation.preview import preview_command
+        return preview_command(args)
+    if args.out is None:
+        raise ValueError("--out DIR is required (only --preview writes into the run itself)")
+    _check_render_options(args)
+    spp = 256 if args.spp is None else args.spp
+    from mi_grg.data import outputs
+    from mi_grg.evaluation import crosscheck as cc
+    outputs.check_out(args.out, outputs.RENDER, [args.scene, args.run, args.data])
+    with outputs.staged(args.out, outputs.RENDER) as tmp:
+        if args.scene is not None:
+            res = cc.render_scene(args.scene, spp, tmp, seed=args.seed,
+                                  confidence=args.confidence, shown=args.out)
+        else:
+            res = cc.render_run(args.run, spp, tmp, views=args.views or 2,
+                                det=args.det or 32, data=args.data, seed=args.seed,
+                                confidence=args.confidence, shown=args.out)
     print(f"volpath ({res['spp']} spp) vs {res['reference']}, {res['confidence']:.1%} "
           "confidence per view:")
     for k, v in enumerate(res["views"]):
@@ -338,6 +322,7 @@ def add_experiment_parser(subparsers) -> None:
                    "scheduler (tcp://host:8786); OUT must be shared with its workers")
     e.add_argument("--threads-per-run", type=int, help="Dr.Jit threads of each run (default: "
                    "cores // jobs here, 1 with --dask)")
+    _add_max_memory(e)
     e.set_defaults(func=cmd_experiment)
     r = subparsers.add_parser("report", help="write docs/results.md from a results directory")
     r.add_argument("--out", required=True, help="results directory (as given to experiment)")
@@ -430,6 +415,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _add_max_memory(parser) -> None:
+    parser.add_argument("--max-memory", type=float, metavar="GIB", help="refuse work whose "
+                        "volumes, projections, Gaussians and plans need more (default: the "
+                        "memory this machine has available)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mi_grg.data.phantoms import PHANTOMS
     p = _Parser(prog="mi-grg", description=__doc__)
@@ -457,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 0)")
     s.add_argument("--exr", action="store_true", help="also write projections as OpenEXR")
     s.add_argument("--out", required=True)
+    _add_max_memory(s)
     s.set_defaults(func=cmd_simulate)
 
     r = sub.add_parser("reconstruct", help="reconstruct a data set")
@@ -472,6 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--format", action="append", metavar="NAMES",
                    help="volume files: npy, tiff (ImageJ), nifti (.nii.gz); comma list or "
                    "repeated (default npy,tiff)")
+    _add_max_memory(r)
     r.set_defaults(func=cmd_reconstruct)
 
     q = sub.add_parser("render", help="path-traced cross-check (Mitsuba volpath vs the exact "
@@ -493,6 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--preview", action="store_true", help="with --run: write preview.png "
                    "and preview.gif, its volume rendered in 3-D (emission-absorption)")
     q.add_argument("--out", help="output directory (--preview: default the run's)")
+    _add_max_memory(q)
     q.set_defaults(func=cmd_render)
 
     add_import_parser(sub)     # `import SOURCE --out CASE` (docs/real_data.md)
@@ -508,25 +502,51 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Longest error line: a message quoting a huge value (an attribute, a key) is cut.
+MAX_MESSAGE = 400
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import mi_grg
-    if args.variant:
-        mi_grg.set_variant(args.variant)
+    from mi_grg.core import memory
+    kept = os.environ.get(memory.ENV_MAX_MEMORY)
     try:
+        _set_up(args, mi_grg, memory)
         return args.func(args)
     except SystemExit as e:
         if not isinstance(e.code, str):
             raise
         message = e.code
-    except (ValueError, OSError, EOFError, MemoryError, zipfile.BadZipFile) as e:
+    except (ValueError, OSError, EOFError, MemoryError, RecursionError,
+            zipfile.BadZipFile) as e:
         message = _describe(e)
     except KeyboardInterrupt:   # Ctrl-C: what was kept is said above; no traceback
         print(f"mi-grg {args.command}: interrupted", file=sys.stderr)
         return 130
-    # Bad input (our errors name the field or file): one line, not a traceback.
-    print(f"mi-grg {args.command}: error: {' '.join(message.split())}", file=sys.stderr)
+    finally:                    # an in-process caller's next command starts afresh
+        memory.set_max_memory(None if kept is None else float(kept))
+    print(f"mi-grg {args.command}: error: {one_line(message)}", file=sys.stderr)
     return 2
+
+
+def _set_up(args, mi_grg, memory) -> None:
+    """--variant and --max-memory, before the command (their errors name the flag)."""
+    if args.variant:
+        try:
+            mi_grg.set_variant(args.variant)
+        except ValueError as e:
+            raise ValueError(f"--variant {args.variant}: {e}") from None
+    if args.command != "import" and getattr(args, "max_memory", None) is not None:
+        memory.set_max_memory(args.max_memory)   # import checks its own sizes with it
+
+
+def one_line(message) -> str:
+    """Bad input (our errors name the field or file): one line of at most MAX_MESSAGE
+    characters, without any Python traceback a library embedded in it."""
+    from mi_grg.data.inputs import without_traceback
+    text = " ".join(without_traceback(str(message)).split())
+    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 5] + " ..."
 
 
 _ERRNO_EXPECTED = {errno.ENOTDIR: "expected a directory there, found a file",
@@ -563,6 +583,8 @@ def _describe(e) -> str:
         return f"{where}: {e.strerror or e}" + (f"; {why}" if why else "")
     if isinstance(e, EOFError):
         return f"a file ended too early ({e or 'EOFError'}; truncated?)"
+    if isinstance(e, RecursionError):
+        return "an input is nested too deeply to read (RecursionError)"
     return str(e)
 
 

@@ -137,6 +137,11 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, forma
             takes = sorted(k for k in params if k not in ("case", "out_dir"))
             raise ValueError(f"method {method!r} does not take option(s) {unknown}; its "
                              f"options are {takes}")
+    check_memory(case, method, options)
+    if case.vol_gt is not None and not np.max(case.vol_gt, initial=0.0) > 0:
+        raise ValueError("the data set's ground truth (vol_gt) has no voxel above 0, so 3-D "
+                         "PSNR / SSIM against it are undefined; leave it out of "
+                         "meta_data.json (\"vol\") to reconstruct without scores")
     if out_dir is not None and "out_dir" in params:
         options = {**options, "out_dir": str(out_dir)}
     from mi_grg.data.units import data_range, scaled_case, unit_scale
@@ -182,6 +187,31 @@ def reconstruct(case: Case | str | os.PathLike, method: str, out_dir=None, forma
     return vol, metrics
 
 
+#: Float32 copies of the volume each method holds at once (result, accumulators, the
+#: TV and dual variables; gr's TV refinement runs PDHG on its voxelised result).
+VOLUME_COPIES = {"fdk": 4, "sart": 6, "asd-pocs": 8, "pdhg": 10, "r2": 6, "gr": 10}
+TRAINED_METHODS = ("r2", "gr")
+
+
+def check_memory(case: Case, method: str, options: dict) -> None:
+    """Refuse (one line naming the sizes and --max-memory) a run whose volume copies,
+    projections and, for a trained method, Gaussians and projector plans would not fit
+    (``mi_grg.core.memory``), before any of them is allocated."""
+    from mi_grg.core import memory
+    g = case.geometry
+    needs = [memory.volume(g.nVoxel, VOLUME_COPIES.get(method, 6)),
+             memory.projections(g.n_views + len(case.test_angles), g.nDetector, copies=4)]
+    if method in TRAINED_METHODS:
+        from mi_grg.core import projector
+        from mi_grg.training.config import TrainConfig
+        cap = options.get("max_gaussians", TrainConfig().densify.max_gaussians)
+        needs += [memory.gaussians(cap if isinstance(cap, int) else 0),
+                  memory.plans(projector.RECORDS_PER_CHUNK, projector.ROWS_PER_BATCH,
+                               projector.PIXELS_PER_CHUNK)]
+    memory.check(needs, f"--method {method} on nVoxel {list(g.nVoxel)}",
+                 lower="lower nVoxel (a coarser volume) or the detector size")
+
+
 def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None, formats=None) -> Path:
     """Write vol_pred in ``formats`` (default .npy and an ImageJ .tif, with the voxel size
     of metrics["geometry"]; ``mi_grg.data.export``), metrics.json and slices.png into
@@ -190,8 +220,10 @@ def write_outputs(out_dir, vol: np.ndarray, metrics: dict, vol_gt=None, formats=
     from mi_grg.evaluation.plotting import slice_montage
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_case_volume(out, "vol_pred", vol, metrics["geometry"],
-                      (metrics.get("data") or {}).get("units") or {}, formats)
+    files = write_case_volume(out, "vol_pred", vol, metrics["geometry"],
+                              (metrics.get("data") or {}).get("units") or {}, formats)
+    # what mi_grg.lab.finished reads back before a run counts as finished
+    metrics["volume_files"] = [p.name for p in files]
     with open(out / "metrics.json", "w") as f:
         json.dump(metrics, f, indent=2, default=json_default)
     title = metrics.get("method", "")

@@ -19,6 +19,10 @@ DEFAULT = "llvm_ad_mono"
 _HOOKS: list = []
 
 
+class VariantError(ValueError):
+    """A variant this machine or this Mitsuba build cannot run; the message says which."""
+
+
 def on_set_variant(hook: Callable[[str], None]) -> None:
     """Call ``hook(name)`` after every ``set_variant`` (once per hook)."""
     if hook not in _HOOKS:
@@ -46,14 +50,15 @@ def set_variant(name: str = DEFAULT) -> str:
     """Activate a variant and run the ``on_set_variant`` hooks for it (mi_grg's plugins
     register themselves for it). Returns the name."""
     if name not in SUPPORTED:
-        raise ValueError(f"variant must be one of {SUPPORTED}, got {name!r}")
+        raise VariantError(f"variant must be one of {SUPPORTED}, got {name!r}")
     if name not in mi.variants():
-        raise ValueError(f"this Mitsuba build has no variant {name!r} (has {mi.variants()})")
+        raise VariantError(f"this Mitsuba build has no variant {name!r} (has "
+                           f"{mi.variants()})")
     if name.startswith("cuda"):
         import drjit as dr
         if not dr.has_backend(dr.JitBackend.CUDA):
-            raise RuntimeError("variant 'cuda_ad_mono' needs an NVIDIA GPU with a CUDA driver; "
-                               "none was found. Use 'llvm_ad_mono' (CPU).")
+            raise VariantError("variant 'cuda_ad_mono' needs an NVIDIA GPU with a CUDA "
+                               "driver; none was found. Use 'llvm_ad_mono' (CPU).")
     if mi.variant() != name:
         mi.set_variant(name)
     for hook in _HOOKS:

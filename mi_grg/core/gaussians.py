@@ -30,6 +30,10 @@ class GaussiansError(ValueError):
 
 
 def _as_numpy(name, value, shape_tail):
+    kind = np.asarray(value).dtype.kind
+    if kind not in "fiu":
+        raise GaussiansError(f"{name} must hold real numbers, got dtype "
+                             f"{np.asarray(value).dtype}")
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim == 1 and shape_tail == ():
         pass
@@ -147,11 +151,25 @@ class Gaussians:
 
     @classmethod
     def load_npz(cls, path) -> "Gaussians":
-        with np.load(path) as f:
-            missing = {"positions", "scales", "rotations", "densities"} - set(f.files)
-            if missing:
-                raise GaussiansError(f"{path}: missing array(s) {sorted(missing)}")
-            return cls.from_numpy(f["positions"], f["scales"], f["rotations"], f["densities"])
+        """The Gaussians of a ``save_npz`` file; GaussiansError naming the file for one
+        that is not a complete .npz of valid Gaussians."""
+        import zipfile
+        import zlib
+        names = ("positions", "scales", "rotations", "densities")
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                missing = set(names) - set(getattr(f, "files", ()))
+                arrays = None if missing else [f[k] for k in names]
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+            why = "not an .npz archive" if "pickled" in str(e) else f"{e}; truncated?"
+            raise GaussiansError(f"{path}: not a readable .npz of Gaussians ({why})") \
+                from None
+        if missing:
+            raise GaussiansError(f"{path}: missing array(s) {sorted(missing)}")
+        try:
+            return cls.from_numpy(*arrays)
+        except (GaussiansError, TypeError, ValueError) as e:
+            raise GaussiansError(f"{path}: {e}") from None
 
 
 def rotation_matrix(q) -> "mi.Matrix3f":

@@ -189,14 +189,59 @@ def _read_split(root: Path, meta: dict, split: str, geo_shape, required: bool):
     angles = np.array([_angle(e, f"{key}[{i}]") for i, e in enumerate(entries)])
     stack = np.empty((len(entries), *geo_shape), np.float32)
     for i, e in enumerate(entries):
-        path = root / e["file_path"]
+        path = _inside(root, e["file_path"], f"{key}[{i}].file_path")
         img = _load_image(path, f"{key}[{i}]")
+        if img.dtype.kind in "biu":
+            raise DatasetError(f"{key}[{i}]: {path} holds integers ({img.dtype}), not line "
+                               "integrals -log(I/I0); import raw counts with `mi-grg import` "
+                               "(docs/real_data.md)")
         if img.shape != tuple(geo_shape):
             raise DatasetError(f"{key}[{i}]: {path} has shape {list(img.shape)}, expected "
                                f"[v, u] = {list(geo_shape)} (scanner nDetector)")
         stack[i] = img
     stack, clamp = _check_stack(stack, key)
     return angles, stack, clamp
+
+
+def _inside(root: Path, rel, what: str) -> Path:
+    """``root / rel``, refused (naming ``what``) unless it lies inside the case folder: a
+    data set reads only its own files."""
+    if not isinstance(rel, str) or not rel:
+        raise DatasetError(f"{root / META_NAME}: {what} must be a file name, got {rel!r}")
+    path = root / rel
+    if Path(rel).is_absolute() or root.resolve() not in path.resolve().parents:
+        raise DatasetError(f"{root / META_NAME}: {what} {str(rel)[:200]!r} points outside the "
+                           "case folder; a data set's files lie inside it")
+    return path
+
+
+def _check_memory(meta: dict, geo: Geometry, root: Path) -> None:
+    """Refuse a case whose projections and ground truth would not fit, before they are
+    read (``mi_grg.core.memory``)."""
+    from mi_grg.core import memory
+    n = sum(len(meta[k]) for k in ("proj_train", "proj_test") if isinstance(meta.get(k), list))
+    needs = [memory.projections(n, geo.nDetector, copies=2)]
+    if meta.get("vol"):
+        needs.append(memory.volume(geo.nVoxel, copies=2, what="ground truth"))
+    memory.check(needs, str(root / META_NAME), lower="a smaller case (nVoxel, nDetector)")
+
+
+def _read_meta(meta_path: Path) -> tuple:
+    """(meta_data.json's content, nDetector [v, u]), read within bounds, and the case's
+    size checked against the memory there is before its arrays are read."""
+    from mi_grg.data.inputs import InputError, read_json
+    try:
+        meta = read_json(meta_path, META_NAME)
+    except InputError as e:
+        raise DatasetError(str(e)) from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("scanner"), dict):
+        raise DatasetError(f"{meta_path}: lacks the 'scanner' object")
+    try:
+        probe = Geometry.from_scanner_dict(meta["scanner"], [0.0])
+    except (GeometryError, TypeError, ValueError) as e:
+        raise DatasetError(f"{meta_path}: scanner: {e}") from e
+    _check_memory(meta, probe, meta_path.parent)
+    return meta, probe.nDetector
 
 
 # ---------------------------------------------------------------- load
@@ -226,30 +271,20 @@ def load_case(path, rescale: bool = True) -> Case:
     meta_path = root / META_NAME
     if not meta_path.is_file():
         raise DatasetError(f"{meta_path} not found (expected an R2-Gaussian case directory)")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{meta_path}: not valid JSON ({e})") from e
-    if not isinstance(meta, dict) or not isinstance(meta.get("scanner"), dict):
-        raise DatasetError(f"{meta_path}: lacks the 'scanner' object")
+    meta, nv_nu = _read_meta(meta_path)
     scanner = meta["scanner"]
-
-    try:
-        nv_nu = Geometry.from_scanner_dict(scanner, [0.0]).nDetector
-    except GeometryError as e:
-        raise DatasetError(f"{meta_path}: scanner: {e}") from e
     train_angles, train, train_clamp = _read_split(root, meta, "train", nv_nu, required=True)
     test_angles, test, test_clamp = _read_split(root, meta, "test", nv_nu, required=False)
     clamped = {k: v for k, v in (("proj_train", train_clamp), ("proj_test", test_clamp)) if v}
     try:
         geo = Geometry.from_scanner_dict(scanner, train_angles)
-    except GeometryError as e:
+    except (GeometryError, TypeError, ValueError) as e:
         raise DatasetError(f"{meta_path}: {e}") from e
 
     vol = None
     vol_name = meta.get("vol")
     if vol_name:
-        vol_path = root / vol_name
+        vol_path = _inside(root, vol_name, "vol")
         if vol_path.is_file():
             vol = _load_image(vol_path, "vol")
             if vol.shape != geo.nVoxel:

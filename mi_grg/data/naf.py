@@ -88,7 +88,10 @@ def load_naf(path) -> dict:
             from e
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: expected a dict at the top, got {type(data).__name__}")
-    _plain(data, path.name)
+    try:
+        _plain(data, path.name)
+    except RecursionError:
+        raise DatasetError(f"{path}: nested too deeply to be a NAF pickle") from None
     return data
 
 
@@ -148,6 +151,8 @@ def naf_case(data: dict, path) -> tuple:
                        offOrigin=data.get("offOrigin", (0, 0, 0)),
                        offDetector=data.get("offDetector", (0, 0)),
                        angles=splits["train"][1]).scaled(NAF_LENGTH_SCALE)
+    except DatasetError:
+        raise
     except (GeometryError, TypeError, ValueError) as e:
         raise DatasetError(f"{name}: {e}") from e
     vol = data.get("image")

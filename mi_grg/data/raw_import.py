@@ -34,8 +34,7 @@ from mi_grg.data.case import Case
 from mi_grg.data.cor import estimate_cor
 from mi_grg.data.dataset import DatasetError
 from mi_grg.data.naf import NAF_LENGTH_SCALE, load_naf, naf_case
-from mi_grg.data.outputs import (check_apart, check_replaceable, check_writable, clean_stale,
-                                 input_paths, replaced_dir)
+from mi_grg.data.outputs import IMPORT, check_apart, check_out, input_paths, staged
 
 IMPORT_JSON = "import.json"
 CHECK_PNG = "check.png"
@@ -484,15 +483,14 @@ def _checked_options(source: Path, opts: dict) -> dict:
 
 
 def _check_out(out: Path, source: Path, opts: dict, overwrite: bool) -> None:
-    """--out must be writable, apart from every input, and replaceable if it exists."""
-    check_writable(out)
-    for note in clean_stale(out, "import"):
-        print(f"note: {note}", file=sys.stderr)
-    inputs = [source, *input_paths(source), *input_paths(opts["flats"]),
-              *input_paths(opts["darks"]), *input_paths(opts["scene"]),
-              *input_paths(opts["angles"])]
-    check_apart(out, inputs)
-    check_replaceable(out, overwrite)
+    """--out must be writable, apart from every input (the folders of the scan, its flats
+    and darks included), and replaceable if it exists."""
+    frames = [*input_paths(opts["flats"]), *input_paths(opts["darks"])]
+    if source.suffix.lower() not in (".pickle", ".pkl"):
+        frames += input_paths(source)
+    inputs = [source, *frames, *{p.parent for p in frames if p.is_file()},
+              *input_paths(opts["scene"]), *input_paths(opts["angles"])]
+    check_out(out, IMPORT, inputs, overwrite)
 
 
 def _tiff_source(source: Path, opts: dict, record: dict) -> tuple:
@@ -717,7 +715,7 @@ def _reference(proj_all, vol_geo: Geometry, opts: dict, vol_gt, unit: str) -> tu
 def _write(out: Path, case: Case, record: dict, check: bool, proj_all, vol_geo) -> None:
     """The case, import.json and check.png, replacing ``out`` only once all are written."""
     from mi_grg.data.dataset import json_default, save_case
-    with replaced_dir(out, "import") as tmp:
+    with staged(out, IMPORT) as tmp:
         save_case(case, tmp)
         if case.vol_gt is not None:   # the reference as CT tools open it, in the scan's unit
             from mi_grg.data.export import write_case_volume

@@ -358,10 +358,8 @@ def _xml_value(value):
 
 def _mitsuba_message(e: Exception) -> str:
     """Mitsuba's error without the Python traceback it embeds for plugin errors."""
-    lines = str(e).strip().splitlines()
-    if any(line.startswith("Traceback") for line in lines):
-        return f"{lines[0]} {lines[-1]}"
-    return " ".join(line.strip() for line in lines)
+    from mi_grg.data.inputs import without_traceback
+    return " ".join(without_traceback(str(e)).split())
 
 
 def load_scan(path, overrides: dict | None = None) -> Scan:
@@ -389,6 +387,11 @@ def load_scan_and_scene(path, overrides: dict | None = None) -> tuple:
     path = Path(path)
     if not path.is_file():
         raise ScanError(f"scene file {path} does not exist")
+    from mi_grg.data.inputs import InputError, check_xml
+    try:
+        check_xml(path, "scene file")     # bounded before Mitsuba's parser reads it
+    except InputError as e:
+        raise ScanError(str(e)) from None
     config = mi.parser.ParserConfig(mi.variant())
     try:
         state = mi.parser.parse_file(config, str(path))

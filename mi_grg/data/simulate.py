@@ -102,3 +102,14 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
     }
     return Case(geometry=geometry, train=np.asarray(train, np.float32), test_angles=test_angles,
                 test=test, vol_gt=vol, scene_scale=1.0, info=info)
+
+
+def check_simulation_memory(geometry: Geometry, n_test: int, where: str) -> None:
+    """Refuse (one line naming the sizes and --max-memory) a simulation whose ground truth
+    (float64 while voxelised, then float32) and projections (float64, then float32) would
+    not fit (``mi_grg.core.memory``)."""
+    from mi_grg.core import memory
+    memory.check([memory.volume(geometry.nVoxel, copies=3, what="ground truth"),
+                  memory.projections(geometry.n_views + int(n_test), geometry.nDetector,
+                                     copies=4)],
+                 where, lower="lower nVoxel, nDetector or the number of views")

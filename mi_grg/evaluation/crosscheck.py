@@ -466,7 +466,8 @@ def scene_reference(scan, scene) -> tuple:
         g = Gaussians.load_npz(medium.filename)     # as resolved by the plugin
         extent = float(obj.get("extent", DEFAULT_EXTENT))
         proj = float(obj.get("scale", 1.0)) * projection(g, geo, extent)
-        info.update(gaussians=medium.filename, n_gaussians=len(g), extent=extent)
+        info.update(gaussians=os.path.normpath(medium.filename), n_gaussians=len(g),
+                    extent=extent)
     else:
         params = mi.traverse(medium)
         data = np.asarray(params["sigma_t.data"], np.float32)   # [z, y, x, channels]
@@ -558,7 +559,7 @@ def binomial_z(mc: np.ndarray, ref: np.ndarray, spp: int) -> np.ndarray:
 
 
 def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CONFIDENCE,
-                 extra: dict | None = None) -> dict:
+                 extra: dict | None = None, shown=None) -> dict:
     """Render a scene file as written with Mitsuba's ``volpath`` and compare each view's
     transmittance with the exact one of its object (``REFERENCES``).
 
@@ -566,15 +567,19 @@ def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CON
     expected Monte Carlo standard error, z, pass) and ``crosscheck.png`` (per view:
     volpath, reference, difference in standard errors as ``binomial_z``) into ``out_dir``, plus both
     transmittance stacks as EXR (film layout [view * v, u]). ``extra`` is merged into the
-    JSON (e.g. the run a scene was built from)."""
+    JSON (e.g. the run a scene was built from); ``shown``: the folder that ``out_dir`` (a
+    temporary) becomes, named in the JSON instead."""
     from mi_grg.evaluation.plotting import crosscheck_figure
     spp = int(spp)
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     if not 0.5 < float(confidence) < 1.0:
         raise ValueError(f"confidence must lie in (0.5, 1), got {confidence}")
+    out, shown = Path(out_dir), Path(out_dir if shown is None else shown)
+    named = shown / Path(path).name if Path(path).parent == out else path
     t0 = time.perf_counter()
     scan, scene = load_render_scene(path)
+    _check_memory(scan.geometry, spp, named)
     ref, info = scene_reference(scan, scene)
     t_ref = time.perf_counter() - t0
     radiance = float(next(o for o in scan.other if o["type"] == "constant").get("radiance", 1.0))
@@ -586,23 +591,29 @@ def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CON
     for v, a in zip(views, angles):
         v["angle_deg"] = float(np.degrees(a))
     from scipy.stats import norm
-    result = {"scene": str(path), **info, "spp": spp, "seed": seed,
+    result = {"scene": str(named), **info, "spp": spp, "seed": seed,
               "projection_shape": list(ref.shape), "estimator": ESTIMATOR,
               "confidence": float(confidence),
               "z_critical": float(norm.ppf(1 - (1 - confidence) / 2)),
               "pass": all(v["pass"] for v in views), "views": views,
               "reference_seconds": t_ref, "volpath_seconds": t_mc, **(extra or {})}
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = []
     for name, stack in (("volpath_T", mc), ("reference_T", ref)):
-        files.append(str(out / f"{name}.exr"))
-        mi.Bitmap(np.ascontiguousarray(_film(stack))).write(files[-1])
-    files.append(str(out / "crosscheck.png"))
-    crosscheck_figure(files[-1], mc, ref, binomial_z(mc, ref, spp), result)
-    result["files"] = files + [str(out / "crosscheck.json")]
+        mi.Bitmap(np.ascontiguousarray(_film(stack))).write(str(out / f"{name}.exr"))
+    crosscheck_figure(out / "crosscheck.png", mc, ref, binomial_z(mc, ref, spp), result)
+    result["files"] = [str(shown / f) for f in ("volpath_T.exr", "reference_T.exr",
+                                                  "crosscheck.png", "crosscheck.json")]
     (out / "crosscheck.json").write_text(json.dumps(result, indent=2))
     return result
+
+
+def _check_memory(geometry: Geometry, spp: int, path) -> None:
+    """Refuse a render whose film and images would not fit (``mi_grg.core.memory``)."""
+    from mi_grg.core import memory
+    memory.check([memory.film(geometry.n_views, geometry.nDetector, spp, MAX_LANES),
+                  memory.projections(geometry.n_views, geometry.nDetector, copies=12,
+                                     what="transmittance images")],
+                 str(path), lower="lower the detector size (--det), the views or --spp")
 
 
 # ---------------------------------------------------------------- a finished gr / r2 run
@@ -618,7 +629,6 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     Returns (scene path, info dict). Raises FileNotFoundError / ValueError (one line,
     naming what is missing and how to make it)."""
     from mi_grg.data.scene import Scan, write_scan_xml
-    from mi_grg.data.simulate import default_test_angles
     run = Path(run_dir)
     how = (f"`mi-grg reconstruct DATA --method gr --out {run}` (or --method r2) writes it")
     if not run.is_dir():
@@ -632,16 +642,43 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     metrics_path = run / "metrics.json"
     if not metrics_path.is_file():
         raise FileNotFoundError(f"{run} has no metrics.json (the run's scanner geometry); {how}")
-    metrics = json.loads(metrics_path.read_text())
-    g = metrics.get("geometry")
+    from mi_grg.data.inputs import read_json
+    metrics = read_json(metrics_path, "metrics.json")
+    g = metrics.get("geometry") if isinstance(metrics, dict) else None
     if not isinstance(g, dict):
         raise ValueError(f"{metrics_path} lacks 'geometry' (the scanner); {how}")
     views, det = int(views), int(det)
     if views < 1 or det < 1:
         raise ValueError(f"--views and --det must be >= 1, got {views} and {det}")
+    given = None
     if data is not None:
         from mi_grg.data.dataset import load_case
-        angles, source = load_case(data, rescale=False).test_angles, f"data set {data}"
+        given = load_case(data, rescale=False).test_angles, f"data set {data}"
+    Gaussians.load_npz(npz)   # checked here: a broken file is named as the run's
+    try:
+        geo, source, pick, extent = _run_geometry(metrics, g, views, det, given)
+    except (TypeError, ValueError, AttributeError, KeyError, IndexError) as e:
+        named = f"{type(e).__name__}: " if isinstance(e, (KeyError, IndexError)) else ""
+        raise ValueError(f"{metrics_path}: {named}{e}") from None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scan = Scan(geometry=geo, object={"type": "gaussian_medium", "extent": extent,
+                                      "filename": os.path.relpath(npz.resolve(), out.resolve())},
+                integrator={"type": "volpath"},
+                other=[{"type": "constant", "radiance": 1.0}])
+    path = write_scan_xml(scan, out / "scene.xml")
+    info = {"run": str(run), "method": metrics.get("method"), "angles_from": source,
+            "test_view_indices": pick.astype(int).tolist()}
+    return path, info
+
+
+def _run_geometry(metrics: dict, g: dict, views: int, det: int, given) -> tuple:
+    """(geometry of the cross-check in the run's training frame, where its angles come
+    from, the test views picked, the run's truncation extent) from a run's metrics.json
+    (``g``: its "geometry"); ``given``: (test angles, source) of a data set, or None."""
+    from mi_grg.data.simulate import default_test_angles
+    if given is not None:
+        angles, source = given
     elif (metrics.get("data") or {}).get("scene", {}).get("test_angles"):
         angles, source = metrics["data"]["scene"]["test_angles"], "metrics.json (data.scene)"
     else:
@@ -658,23 +695,15 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
         float(g.get("scene_scale", 1.0)))
     nv, nu = geo.nDetector
     geo = geo.replace(nDetector=(det, max(1, round(det * nu / nv))))
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     # the truncation extent the run trained with (the projector's 4.5 before runs recorded it)
     from mi_grg.core.projector import DEFAULT_EXTENT
     extent = float((metrics.get("method_info") or {}).get("extent", DEFAULT_EXTENT))
-    scan = Scan(geometry=geo, object={"type": "gaussian_medium", "extent": extent,
-                                      "filename": os.path.relpath(npz.resolve(), out.resolve())},
-                integrator={"type": "volpath"},
-                other=[{"type": "constant", "radiance": 1.0}])
-    path = write_scan_xml(scan, out / "scene.xml")
-    info = {"run": str(run), "method": metrics.get("method"), "angles_from": source,
-            "test_view_indices": pick.astype(int).tolist()}
-    return path, info
+    return geo, source, pick, extent
 
 
 def render_run(run_dir, spp: int, out_dir, views: int = 2, det: int = 32, data=None,
-               seed: int = 0, confidence: float = CONFIDENCE) -> dict:
+               seed: int = 0, confidence: float = CONFIDENCE, shown=None) -> dict:
     """``render_scene`` of the scene ``run_scene`` builds for a finished gr / r2 run."""
     path, info = run_scene(run_dir, out_dir, views=views, det=det, data=data)
-    return render_scene(path, spp, out_dir, seed=seed, confidence=confidence, extra=info)
+    return render_scene(path, spp, out_dir, seed=seed, confidence=confidence, extra=info,
+                        shown=shown)

@@ -33,6 +33,8 @@ ELEVATION_DEG = 20.0
 #: Ray-marching step in voxels; samples per pixel (jittered: no wood-grain bands).
 STEP_VOXELS = 0.5
 SPP = 4
+#: The largest --spp: every sample of every view is one lane of a single pass.
+MAX_SPP = 256
 #: Optical depth of a ray crossing the box's longest side through density ``hi``.
 OPTICAL_DEPTH = 12.0
 #: Colour map of the emission (matplotlib name), from its ``CMAP_START`` on.
@@ -170,6 +172,10 @@ def render_views(vol: np.ndarray, spacing=(1.0, 1.0, 1.0), n_views: int = N_VIEW
     (row 0 at the top, +z up on screen). One Mitsuba ``batch`` sensor renders every view
     in one pass. ``framing``: (centre, radius) of the sphere the cameras frame, in box
     coordinates (longest side 1, centred at 0); default: around the visible voxels."""
+    from mi_grg.core import memory
+    memory.check([memory.film(n_views, (size, size), spp, max_lanes=memory.MAX_ENTRIES),
+                  memory.volume(vol.shape, copies=3)], "render --preview",
+                 lower="lower --spp")
     vol = np.asarray(vol, np.float32)
     tf = transfer_function(vol) if tf is None else tf
     extent = np.asarray(vol.shape, np.float64) * np.asarray(spacing, np.float64)
@@ -301,10 +307,18 @@ def preview_command(args) -> int:
         raise ValueError(f"{', '.join(extra)} only apply to the path-traced cross-check, not "
                          "to --preview")
     spp = SPP if args.spp is None else int(args.spp)
-    if spp < 1:
-        raise ValueError(f"--spp must be >= 1, got {spp}")
-    res = write_preview(args.run, args.out, spp=spp)
+    if not 1 <= spp <= MAX_SPP:
+        raise ValueError(f"--spp {spp}: expected 1 to {MAX_SPP}")
+    from mi_grg.data import outputs
+    if args.out is None:     # beside the run's files: each of the two replaced whole
+        with outputs.staged_files(args.run, (PREVIEW_PNG, PREVIEW_GIF), "preview") as tmp:
+            res = write_preview(args.run, tmp, spp=spp)
+    else:                    # a folder of its own: the one rule of every --out
+        outputs.check_out(args.out, outputs.PREVIEW, [args.run])
+        with outputs.staged(args.out, outputs.PREVIEW) as tmp:
+            res = write_preview(args.run, tmp, spp=spp)
+    shown = Path(args.run if args.out is None else args.out)
     print(f"preview of {args.run}: {res['views']} azimuths, density {res['lo']:.4g} to "
           f"{res['hi']:.4g} ({res['unit']}) from the histogram, {res['seconds']:.1f} s  -> "
-          f"{res['png']}, {res['gif']}")
+          f"{shown / PREVIEW_PNG}, {shown / PREVIEW_GIF}")
     return 0

@@ -12,12 +12,13 @@ case).
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 from pathlib import Path
 
 import numpy as np
+
+from mi_grg.lab.finished import ROW_TYPES, read_finished, read_runs
 
 DASH = "—"
 CATS = ("HO", "BS", "AO")
@@ -67,10 +68,15 @@ PAPER_TABLE3_SIGMA = {"PSNR": (35.60, 35.72, 35.86, 35.68, 35.43),
 
 # ---------------------------------------------------------------------------- loading
 def _read_json(path: Path):
+    from mi_grg.data.inputs import read_json
     try:
-        return json.loads(Path(path).read_text())
+        return read_json(path)
     except (OSError, ValueError):
         return None
+
+
+def _dict(value) -> dict:
+    return value if isinstance(value, dict) else {}
 
 
 def load_runs(out_dir) -> dict:
@@ -79,22 +85,21 @@ def load_runs(out_dir) -> dict:
     out = Path(out_dir)
     result = {}
     for exp_dir in sorted(p for p in out.iterdir() if p.is_dir() and p.name != "data"):
-        runs = _read_json(exp_dir / "runs.json")
-        rows = []
-        if runs is not None:
-            for r in runs.get("runs", []):
-                rows.append(dict(r))
-        else:   # no runs.json: scan the layout
+        index = read_runs(exp_dir / "runs.json")
+        rows = [] if index is None else index["runs"]
+        if index is None:   # no runs.json: scan the layout
             for m in sorted(exp_dir.glob("*/*/metrics.json")):
-                met = _read_json(m) or {}
-                sc = (met.get("data") or {}).get("suite_case") or {}
-                rows.append({"case": m.parent.parent.name, "run": m.parent.name,
-                             "category": sc.get("category"), "label": m.parent.name,
-                             "method": met.get("method"), "views": sc.get("views")})
+                met = _dict(_read_json(m))
+                sc = _dict(_dict(met.get("data")).get("suite_case"))
+                row = {"case": m.parent.parent.name, "run": m.parent.name,
+                       "category": sc.get("category"), "label": m.parent.name,
+                       "method": met.get("method"), "views": sc.get("views")}
+                rows.append({k: v if isinstance(v, ROW_TYPES[k]) else None
+                             for k, v in row.items()})
         for r in rows:
             d = exp_dir / r["case"] / r["run"]
             r["dir"] = str(d)
-            r["metrics"] = _read_json(d / "metrics.json")
+            r["metrics"] = read_finished(d, r)   # None unless the run reads back
         if rows:
             result[exp_dir.name] = rows
     return result
@@ -103,7 +108,7 @@ def load_runs(out_dir) -> dict:
 def _commands(out_dir) -> list:
     cmds = []
     for f in sorted(Path(out_dir).glob("*/runs.json")):
-        cmds += (_read_json(f) or {}).get("commands", [])
+        cmds += read_runs(f)["commands"]
     return cmds
 
 
@@ -1000,16 +1005,25 @@ def _extremes_md(t1, out: Path, img_dir: Path, rel: str) -> list:
 
 
 def write_report(out_dir, report_path="docs/results.md") -> Path:
-    """Write the markdown report (and its PNGs under <report dir>/img/results/)."""
-    from mi_grg.lab.compare import comparison_section
-    out = Path(out_dir)
-    if not out.is_dir():
-        raise FileNotFoundError(f"results directory {out} does not exist")
-    report = Path(report_path)
-    img_dir = report.parent / "img" / "results"
-    img_dir.mkdir(parents=True, exist_ok=True)
+    """Write the markdown report (and its PNGs under <report dir>/img/results/), built
+    beside them and swapped in whole; never over what the runner wrote
+    (``mi_grg.lab.finished.report_target``)."""
+    from mi_grg.data.outputs import staged_report
+    from mi_grg.lab.finished import report_target
+    out, report = Path(out_dir), Path(report_path)
+    all_rows = load_runs(out) if out.is_dir() else {}
+    img_dir = report_target(out, report, all_rows)
     rel = os.path.relpath(img_dir, report.parent)
-    all_rows = load_runs(out)
+    with staged_report(report, img_dir) as (tmp_report, tmp_img):
+        _write_md(out, report, all_rows, tmp_report, tmp_img, rel)
+    return report
+
+
+def _write_md(out: Path, report: Path, all_rows: dict, path: Path, img_dir: Path,
+              rel: str) -> None:
+    """The report of ``all_rows`` into ``path``, its PNGs into ``img_dir``."""
+    from mi_grg.lab.compare import comparison_section
+    from mi_grg.lab.finished import broken_md
     t1 = all_rows.get("table1")
     md = _intro_md(out, report, all_rows)
     md += _table1_md(t1, out)
@@ -1021,6 +1035,5 @@ def write_report(out_dir, report_path="docs/results.md") -> Path:
     md += _seeds_md(all_rows.get("seeds"), out)
     md += comparison_section(out, t1, img_dir, rel)
     md += _extremes_md(t1, out, img_dir, rel)
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text("\n".join(md) + "\n")
-    return report
+    md += broken_md(all_rows)
+    path.write_text("\n".join(md) + "\n")

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_grg.lab.curves import register_experiment_methods
+from mi_grg.lab.finished import is_finished
 from mi_grg.lab.plan import RunSpec, plan_experiment
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
 from mi_grg.lab.staleness import stale_keys
@@ -225,7 +226,7 @@ def stale_options(run_dir: Path) -> list:
 
 
 def _is_done(run_dir: Path) -> bool:
-    return (run_dir / "metrics.json").is_file() and not stale_options(run_dir)
+    return is_finished(run_dir) and not stale_options(run_dir)
 
 
 def _index_done(out: Path) -> dict:

@@ -4,7 +4,6 @@ The suite format is described in experiments/README.md."""
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,14 +118,14 @@ def _case_spec(c, where: str, seen: set) -> CaseSpec:
                          f"(and not 'data'), got {name!r}")
     if name in seen:
         raise SuiteError(f"{where}: duplicate case name {name!r}")
-    if c["category"] not in CATEGORIES:
+    if not isinstance(c["category"], str) or c["category"] not in CATEGORIES:
         raise SuiteError(f"{where}.category must be one of {list(CATEGORIES)}, got "
                          f"{c['category']!r}")
     src = c["source"]
     if not isinstance(src, str) or not (src in PHANTOMS or src.endswith(".npy")):
         raise SuiteError(f"{where}.source must be a phantom {PHANTOMS} or a .npy volume, "
                          f"got {src!r}")
-    if c["mode"] not in ("cone", "parallel"):
+    if not isinstance(c["mode"], str) or c["mode"] not in ("cone", "parallel"):
         raise SuiteError(f"{where}.mode must be 'cone' or 'parallel', got {c['mode']!r}")
     noise = c["noise"]
     if noise is not None:
@@ -137,24 +136,91 @@ def _case_spec(c, where: str, seen: set) -> CaseSpec:
             NoiseModel(**noise)
         except (TypeError, ValueError) as e:
             raise SuiteError(f"{where}.noise: {e}") from None
+    over, truth = c.get("oversample", 4.0), c.get("ground_truth", "average")
+    if isinstance(over, bool) or not isinstance(over, (int, float)) or not over > 0:
+        raise SuiteError(f"{where}.oversample must be a number > 0, got {over!r}"[:300])
+    if truth not in ("average", "block"):
+        raise SuiteError(f"{where}.ground_truth must be 'average' or 'block', got "
+                         f"{truth!r}"[:300])
     return CaseSpec(name=name, category=c["category"], source=src,
                     views=_int_field(c, "views", where, 2),
                     test_views=_int_field(c, "test_views", where, 0),
                     n=_int_field(c, "n", where, 2), det=_int_field(c, "det", where, 2),
                     mode=c["mode"], noise=noise, seed=_int_field(c, "seed", where, 0),
-                    oversample=float(c.get("oversample", 4.0)),
-                    ground_truth=c.get("ground_truth", "average"))
+                    oversample=float(over), ground_truth=truth)
+
+
+#: The keys a suite file may have (anything else is an error with the closest key named).
+SUITE_KEYS = ("name", "description", "variant", "cases", "method_options", "experiments",
+              "extra_methods")
+
+
+def _unknown(names, known, where: str) -> None:
+    """SuiteError naming each of ``names`` not in ``known``, with the closest known one."""
+    from mi_grg.data.scene import suggest
+    bad = [n for n in names if n not in known]
+    if bad:
+        hints = "; ".join(f"{str(n)[:80]!r}{suggest(str(n), known)}" for n in bad)
+        raise SuiteError(f"{where}: unknown key(s) {hints}; known: {list(known)}")
+
+
+def _check_method_options(mo: dict, extra: dict, path) -> None:
+    """method_options names methods that exist and options that they take."""
+    import inspect
+    from mi_grg.training.config import FLAT_KEYS
+    _unknown(mo, (*ALL_METHODS, *extra), f"{path}: method_options")
+    for method, options in mo.items():
+        if method in TRAINED:
+            known = (*FLAT_KEYS, "config", "progress", "resume")
+        elif method in ALL_METHODS:
+            from mi_grg.methods import get_method
+            params = inspect.signature(get_method(method)).parameters
+            known = tuple(k for k in params if k not in ("case", "out_dir"))
+        else:
+            continue              # an extra method: it checks its own options
+        _unknown(options, known, f"{path}: method_options.{method}")
+
+
+#: The type of each value an experiment's block may set (lists: of that type).
+_BLOCK_TYPES = {"methods": [str], "cases": [str], "k": [int], "sigma_d": [(int, float)],
+                "views": [int], "seeds": [int], "log_3d_every": int}
+
+
+def _check_experiment(ename: str, cfg, seen: set, where: str) -> None:
+    """An experiment's block: known keys, values of the right types, known cases."""
+    if cfg is not None and not isinstance(cfg, dict):
+        raise SuiteError(f"{where} must be an object")
+    unknown = sorted(set(cfg or {}) - set(EXPERIMENT_KEYS[ename]))
+    if unknown:
+        raise SuiteError(f"{where} has unknown key(s) {unknown}; known: "
+                         f"{list(EXPERIMENT_KEYS[ename])}")
+    for key, value in (cfg or {}).items():
+        kind = _BLOCK_TYPES[key]
+        items = value if isinstance(kind, list) and isinstance(value, list) else [value]
+        want = kind[0] if isinstance(kind, list) else kind
+        if (isinstance(kind, list) and not isinstance(value, list)) or not all(
+                isinstance(v, want) and not isinstance(v, bool) for v in items):
+            raise SuiteError(f"{where}.{key} must be "
+                             f"{'a list of ' if isinstance(kind, list) else ''}"
+                             f"{getattr(want, '__name__', 'number')}s, got {value!r}"[:300])
+    for cname in (cfg or {}).get("cases") or []:
+        if cname not in seen:
+            raise SuiteError(f"{where}.cases names unknown case {cname!r}")
 
 
 def load_suite(path) -> Suite:
     """Read and validate a suite JSON file (see experiments/README.md for the format)."""
+    from mi_grg.data.inputs import InputError, read_json
     path = Path(path)
     try:
-        raw = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        raw = read_json(path, "suite")
+    except InputError as e:
+        raise SuiteError(str(e)) from None
+    except OSError as e:
         raise SuiteError(f"cannot read suite {path}: {e}") from None
     if not isinstance(raw, dict) or not isinstance(raw.get("cases"), list) or not raw["cases"]:
         raise SuiteError(f"{path}: expected an object with a non-empty 'cases' list")
+    _unknown(raw, SUITE_KEYS, str(path))
     cases, seen = [], set()
     for i, c in enumerate(raw["cases"]):
         spec = _case_spec(c, f"{path}: cases[{i}]", seen)
@@ -164,23 +230,18 @@ def load_suite(path) -> Suite:
     if not isinstance(mo, dict) or not all(isinstance(v, dict) for v in mo.values()):
         raise SuiteError(f"{path}: method_options must map method names to option objects")
     ex = raw.get("experiments", {}) or {}
+    if not isinstance(ex, dict):
+        raise SuiteError(f"{path}: experiments must map experiment names to objects")
     bad = sorted(set(ex) - set(EXPERIMENTS))
     if bad:
         raise SuiteError(f"{path}: unknown experiment(s) {bad}; known: {list(EXPERIMENTS)}")
     for ename, cfg in ex.items():
-        if cfg is not None and not isinstance(cfg, dict):
-            raise SuiteError(f"{path}: experiments.{ename} must be an object")
-        unknown = sorted(set(cfg or {}) - set(EXPERIMENT_KEYS[ename]))
-        if unknown:
-            raise SuiteError(f"{path}: experiments.{ename} has unknown key(s) {unknown}; "
-                             f"known: {list(EXPERIMENT_KEYS[ename])}")
-        for cname in (cfg or {}).get("cases") or []:
-            if cname not in seen:
-                raise SuiteError(f"{path}: experiments.{ename}.cases names unknown case "
-                                 f"{cname!r}")
+        _check_experiment(ename, cfg, seen, f"{path}: experiments.{ename}")
     extra = raw.get("extra_methods", {}) or {}
-    if not all(isinstance(v, str) and ":" in v for v in extra.values()):
+    if not isinstance(extra, dict) or not all(isinstance(v, str) and ":" in v
+                                              for v in extra.values()):
         raise SuiteError(f"{path}: extra_methods must map names to 'module:function'")
+    _check_method_options(mo, extra, path)
     return Suite(name=str(raw.get("name", path.stem)), path=str(path),
                  variant=str(raw.get("variant", "llvm_ad_mono")), cases=cases,
                  method_options=mo, experiments=ex, extra_methods=extra,

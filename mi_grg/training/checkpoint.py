@@ -178,13 +178,10 @@ def checkpoint_time_plan(path) -> dict | None:
 
 
 def _open(path):
-    try:
-        return np.load(path)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
+    from mi_grg.training.checkpoint_file import read_checkpoint
+    return read_checkpoint(path, _RAW_TYPES)
 
 
 def _meta(f, path) -> dict:
-    if "meta" not in f.files:
-        raise ValueError(f"{path} is not a training checkpoint (no meta record)")
-    return json.loads(bytes(f["meta"]).decode())
+    from mi_grg.training.checkpoint_file import checked_meta
+    return checked_meta(f, path, _RAW_TYPES)

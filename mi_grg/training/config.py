@@ -375,8 +375,12 @@ def _coerce(key: str, value):
 
 def read_config_xml(path) -> tuple[str | None, dict]:
     """Parse a training config file; returns (method or None, {key: value})."""
+    from mi_grg.data.inputs import InputError, check_xml
     try:
+        check_xml(path, "training config")    # bounded before the tree is built
         root = ET.parse(path).getroot()
+    except InputError as e:
+        raise ConfigError(f"cannot read config {e}") from None
     except (OSError, ET.ParseError) as e:
         raise ConfigError(f"cannot read config {path}: {e}") from None
     if root.tag != "training":
@@ -392,7 +396,10 @@ def read_config_xml(path) -> tuple[str | None, dict]:
         name, value = el.attrib.get("name"), el.attrib.get("value")
         if name is None or value is None:
             raise ConfigError(f"{path}: <{el.tag}> needs name and value attributes")
-        _check_key(name)
+        try:
+            _check_key(name)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from None
         kind = _base_type(_FIELDS[name][1])
         want = _TAG_OF_TYPE[kind]
         if el.tag != want:
@@ -400,7 +407,10 @@ def read_config_xml(path) -> tuple[str | None, dict]:
                               f"name=\"{name}\" .../>, not <{el.tag}>")
         if name in values:
             raise ConfigError(f"{path}: {name} is given twice")
-        values[name] = _coerce(name, value)
+        try:
+            values[name] = _coerce(name, value)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from None
     return method, values
 
 
@@ -431,4 +441,9 @@ def make_config(method: str = "gr", path=None, **overrides) -> TrainConfig:
         values.update(file_values)
     for key, value in overrides.items():
         values[key] = _coerce(key, value)
-    return TrainConfig.from_flat(values)
+    try:
+        return TrainConfig.from_flat(values)
+    except ConfigError as e:   # a value the file set: the file is named
+        if path is None or not any(k in str(e) for k in set(file_values) - set(overrides)):
+            raise
+        raise ConfigError(f"{path}: {e}") from None
