@@ -546,7 +546,7 @@ def one_line(message) -> str:
     characters, without any Python traceback a library embedded in it."""
     from mi_grg.data.inputs import without_traceback
     text = " ".join(without_traceback(str(message)).split())
-    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 5] + " ..."
+    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 4] + " ..."
 
 
 _ERRNO_EXPECTED = {errno.ENOTDIR: "expected a directory there, found a file",

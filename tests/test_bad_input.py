@@ -156,6 +156,14 @@ IMPORT_CASES = {
         None, ["--out", "flat_0001.tif"]),
     "out is a parent of the source": (
         FIPS + ["--out", "{r}", "--overwrite"], None, ["--out", "holds the input"]),
+    "out inside the FIPS scan's folder": (FIPS + ["--out", "{r}/scan/case2"], None,
+                                          ["--out", "lies inside the input", "/scan"]),
+    "out inside the flats' folder": (
+        FIPS + ["--flats", FLATS, "--darks", DARKS, "--out", "{r}/flats/sub"], None,
+        ["--out", "lies inside the input", "/flats"]),
+    "out inside the darks' folder": (
+        FIPS + ["--flats", FLATS, "--darks", DARKS, "--out", "{r}/darks/sub"], None,
+        ["--out", "lies inside the input", "/darks"]),
     "out inside a TIFF folder source": (
         ["{r}/tiffs", "--scene", "{r}/scene.xml", "--out", "{r}/tiffs/case"], None,
         ["--out", "lies inside the input"]),

@@ -24,7 +24,47 @@ DEFAULT_VOLUME = "vol_pred.npy"
 #: How every report begins (``mi_grg.lab.report._intro_md``): an earlier report.
 REPORT_HEAD = "# Results"
 
+_NUMBER, _NONE = (int, float), type(None)
+#: The fields of metrics.json that the report and the staleness check read, with the types
+#: ``mi_grg.methods.reconstruct`` writes them in (each may be absent; "*": every key).
+SCHEMA = {"method": str, "options": dict, "seconds": _NUMBER, "n_train_views": int,
+          "nVoxel": list, "geometry": dict, "psnr_3d": _NUMBER, "ssim_3d": _NUMBER,
+          "volume_files": [str], "machine": {"*": (str, int, float, _NONE)},
+          "data": {"n_voxel": [int], "n_detector": [int], "mode": str},
+          "method_info": {"iterations_run": int, "iterations_planned": (int, _NONE),
+                          "protocol": str, "stopped_by": (str, _NONE),
+                          "best_iteration": (int, _NONE), "kept_iteration": (int, _NONE),
+                          "iteration_rule": str, "held_out_views": [int], "config": dict,
+                          "views": dict, "schedule": {"densify_stop": _NUMBER},
+                          "stop_rule": {"noise": _NUMBER, "holdout_every": int},
+                          "chosen": {"setting": {"*": _NUMBER}},
+                          "oracle": {"psnr_3d_best": (int, float, _NONE),
+                                     "gap_db": (int, float, _NONE)}}}
+
 _named: set = set()
+
+
+def _mismatch(value, schema, where: str) -> str | None:
+    """Where ``value`` departs from ``schema`` (a type or tuple of types, [item schema],
+    or {key: schema}), or None."""
+    if isinstance(schema, dict):
+        if not isinstance(value, dict):
+            return f"{where} is not an object"
+        for key, sub in schema.items():
+            for k in (value if key == "*" else [key] if key in value else []):
+                found = _mismatch(value[k], sub, f"{where}.{k}".lstrip("."))
+                if found:
+                    return found
+        return None
+    if isinstance(schema, list):
+        if not isinstance(value, list):
+            return f"{where} is not a list"
+        return next((f for f in (_mismatch(v, schema[0], f"{where}[{i}]")
+                                 for i, v in enumerate(value)) if f), None)
+    kinds = schema if isinstance(schema, tuple) else (schema,)
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        return f"{where} is {type(value).__name__}, not {' or '.join(k.__name__ for k in kinds)}"
+    return None
 
 
 def _npy_shape(path: Path) -> tuple:
@@ -60,6 +100,9 @@ def run_problem(run_dir) -> str | None:
         return str(e)
     if not isinstance(m, dict):
         return f"{d / METRICS}: expected an object, got {type(m).__name__}"
+    wrong = _mismatch(m, SCHEMA, "")
+    if wrong:
+        return f"{d / METRICS}: {wrong}"[:300]
     if "nVoxel" not in m:
         return None       # a record that names no volume (written by other tools)
     shape = m["nVoxel"]

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_grg.lab.curves import register_experiment_methods
-from mi_grg.lab.finished import is_finished
+from mi_grg.lab.finished import is_finished, read_finished
 from mi_grg.lab.plan import RunSpec, plan_experiment
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
 from mi_grg.lab.staleness import stale_keys
@@ -217,11 +217,8 @@ def stale_options(run_dir: Path) -> list:
     """Training options of a finished r2/gr run whose values differ from what this code
     resolves the run's options to (a default changed since it ran); [] if none differ or
     the run is not a training run. Such a run is not reused: it is run again."""
-    try:
-        m = json.loads((Path(run_dir) / "metrics.json").read_text())
-    except (OSError, ValueError):
-        return []
-    return stale_keys(m)
+    m = read_finished(run_dir, {})
+    return [] if m is None else stale_keys(m)
 
 
 

@@ -181,9 +181,14 @@ def _check_method_options(mo: dict, extra: dict, path) -> None:
         _unknown(options, known, f"{path}: method_options.{method}")
 
 
-#: The type of each value an experiment's block may set (lists: of that type).
-_BLOCK_TYPES = {"methods": [str], "cases": [str], "k": [int], "sigma_d": [(int, float)],
-                "views": [int], "seeds": [int], "log_3d_every": int}
+#: What each value of an experiment's block must be: (a list?, of what type, said how).
+_BLOCK_TYPES = {"methods": (True, str, "a list of method names"),
+                "cases": (True, str, "a list of case names"),
+                "k": (True, int, "a list of integers"),
+                "sigma_d": (True, (int, float), "a list of numbers"),
+                "views": (True, int, "a list of integers"),
+                "seeds": (True, int, "a list of integers"),
+                "log_3d_every": (False, int, "an integer")}
 
 
 def _check_experiment(ename: str, cfg, seen: set, where: str) -> None:
@@ -195,14 +200,11 @@ def _check_experiment(ename: str, cfg, seen: set, where: str) -> None:
         raise SuiteError(f"{where} has unknown key(s) {unknown}; known: "
                          f"{list(EXPERIMENT_KEYS[ename])}")
     for key, value in (cfg or {}).items():
-        kind = _BLOCK_TYPES[key]
-        items = value if isinstance(kind, list) and isinstance(value, list) else [value]
-        want = kind[0] if isinstance(kind, list) else kind
-        if (isinstance(kind, list) and not isinstance(value, list)) or not all(
-                isinstance(v, want) and not isinstance(v, bool) for v in items):
-            raise SuiteError(f"{where}.{key} must be "
-                             f"{'a list of ' if isinstance(kind, list) else ''}"
-                             f"{getattr(want, '__name__', 'number')}s, got {value!r}"[:300])
+        listed, kind, said = _BLOCK_TYPES[key]
+        items = value if listed and isinstance(value, list) else [value]
+        if (listed and not isinstance(value, list)) or not all(
+                isinstance(v, kind) and not isinstance(v, bool) for v in items):
+            raise SuiteError(f"{where}.{key} must be {said}, got {value!r}"[:300])
     for cname in (cfg or {}).get("cases") or []:
         if cname not in seen:
             raise SuiteError(f"{where}.cases names unknown case {cname!r}")
