@@ -91,6 +91,25 @@ def _edit_json(path, edit):
     path.write_text(json.dumps(data))
 
 
+def _complex_gaussians(r):
+    with np.load(r / "gr" / "gaussians.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["positions"] = arrays["positions"].astype(np.complex64)
+    np.savez(r / "gr" / "gaussians.npz", **arrays)
+
+
+def _config_value(name, value):
+    def f(r):
+        text = (r / "config.xml").read_text()
+        start = text.index(f'name="{name}" value="') + len(f'name="{name}" value="')
+        (r / "config.xml").write_text(text[:start] + value + text[text.index('"', start):])
+    return f
+
+
+def _zero_truth(r):
+    np.save(r / "data" / "vol_gt.npy", np.zeros_like(np.load(r / "data" / "vol_gt.npy")))
+
+
 def _outside(r):
     shutil.copy(r / "data" / "proj_train" / "proj_train_0000.npy", r / "outside.npy")
 
@@ -262,6 +281,9 @@ CASES = {
         ["render", *RENDER, "--out", "{r}/new"], lambda r: _edit_json(
             r / "gr" / "metrics.json", lambda m: m["geometry"].update(mode=0.5)),
         ["gr/metrics.json", "mode must be one of"]),
+    "render a run whose Gaussians are complex": (
+        ["render", *RENDER, "--out", "{r}/new"], _complex_gaussians,
+        ["gaussians.npz", "positions must hold real numbers"]),
     "render a run with a truncated gaussians.npz": (
         ["render", *RENDER, "--out", "{r}/new"], _truncated("gr/gaussians.npz"),
         ["gaussians.npz", "truncated"]),
@@ -272,6 +294,13 @@ CASES = {
     "a checkpoint whose meta lacks the config": (
         ["reconstruct", *GR_RESUME], _checkpoint(_without_config),
         ["checkpoint.npz", "'config'"]),
+    "a checkpoint whose graph positions are flat": (
+        ["reconstruct", *GR_RESUME],
+        _checkpoint(lambda a: a.update(graph_positions=a["graph_positions"].ravel())),
+        ["checkpoint.npz", "graph_positions", "[M, 3]"]),
+    "a checkpoint without one of Adam's moments": (
+        ["reconstruct", *GR_RESUME], _checkpoint(lambda a: a.pop("adam_v__raw_densities")),
+        ["checkpoint.npz", "adam_steps", "raw_densities"]),
     "an empty checkpoint": (["reconstruct", *GR_RESUME], _empty_checkpoint,
                             ["checkpoint.npz", "truncated?"]),
     "a checkpoint of NaN": (["reconstruct", *GR_RESUME], _checkpoint(_nan_density),
@@ -294,6 +323,11 @@ CASES = {
          "--dry-run"], lambda r: _edit_json(r / "suite.json", lambda s: s["experiments"][
              "table1"].update(methods=[1e308, "sart"])),
         ["experiments.table1.methods must be a list of method names"]),
+    "a config value out of range": (
+        ["reconstruct", "{r}/data", "--method", "gr", "--config", "{r}/config.xml", "--out",
+         "{r}/new"], _config_value("holdout_until", "inf"), ["config.xml", "holdout_until"]),
+    "a ground truth of zeros": (["reconstruct", *FDK], _zero_truth,
+                                ["ground truth (vol_gt)", "no voxel above 0"]),
     "integer projections": (["reconstruct", *FDK], _int_projection,
                             ["proj_train_0001.npy", "int64", "mi-grg import"]),
     "a file_path that is absolute": (
@@ -323,6 +357,16 @@ def test_refused(name, root, capsys, tree_hash):
     for c in culprits:
         assert c in err, (c, err)
     assert tree_hash(root) == before   # inputs and earlier outputs untouched, no temporaries
+
+
+def test_an_error_is_not_blamed_on_a_text_option(root, capsys, tree_hash):
+    """A text --option (refine=none) is named only when the error is about it: here the
+    memory limit is."""
+    before = tree_hash(root)
+    rc, err, _ = run_cli(["reconstruct", str(root / "data"), *fuzz.GR, "--max-memory",
+                          "0.01", "--out", str(root / "new")], capsys)
+    assert rc == 2 and "--max-memory" in err and "passed as text" not in err, err
+    assert tree_hash(root) == before
 
 
 def test_variant_without_a_gpu(root, capsys, tree_hash):
@@ -407,7 +451,8 @@ def _results_with(root, damage) -> tuple:
 
 
 @pytest.mark.parametrize("damage", ["truncated metrics.json", "vol_pred.npy gone",
-                                    "vol_pred.npy of another shape"])
+                                    "vol_pred.npy of another shape",
+                                    "a metrics.json field of another type"])
 def test_a_run_that_does_not_read_back_is_broken(damage, root, capsys):
     """The report names it (stderr and a section) and counts it nowhere; `experiment`
     calls it todo, not done before, and says why."""
@@ -416,6 +461,8 @@ def test_a_run_that_does_not_read_back_is_broken(damage, root, capsys):
         (run / "metrics.json").write_text((run / "metrics.json").read_text()[:100])
     elif damage == "vol_pred.npy gone":
         (run / "vol_pred.npy").unlink()
+    elif damage == "a metrics.json field of another type":
+        _edit_json(run / "metrics.json", lambda m: m["data"].update(n_voxel=[[12]]))
     else:
         np.save(run / "vol_pred.npy", np.zeros((4, 4, 4), np.float32))
     rc, err, _ = run_cli(["report", "--out", str(root / "results"), "--report",
