@@ -112,66 +112,83 @@ def test_refinement_removes_voxel_noise_the_views_do_not_constrain(lam_rule):
         reconstruct_pdhg(case, lam_rule="lowest", progress=False)
 
 
-def test_gr_refine_option(tiny_case, capsys):
-    """refine="tv" runs after training and records its decision; without held-out views it
-    says it was skipped; an unknown mode is a one-line error naming the option."""
+def test_gr_refine_option(tiny_case, capsys, tmp_path):
+    """refine="tv" runs after training and records its decision; what the run exports is
+    what it scores (gaussians.npz voxelised is vol_pred); refine_output="voxels" scores the
+    grid and exports the field under a name that says so; without held-out views it says it
+    was skipped; an unknown mode is a one-line error naming the option."""
+    from mi_grg.core.gaussians import Gaussians
+    from mi_grg.core.voxelizer import voxelize
     from mi_grg.methods import reconstruct
     from mi_grg.training.config import ConfigError
     opts = dict(iterations=300, n_points=300, eval_every=200, holdout_every=3,
                 progress=False)
-    vol, m = reconstruct(tiny_case, "gr", refine="tv", **opts)
-    r = m["method_info"]["refine"]
-    assert r["lam"] in [c["lam"] for c in r["weight_candidates"]] and vol.shape == (16, 16, 16)
-    assert m["method_info"]["config"]["refine"] == "tv"
-    plain, _ = reconstruct(tiny_case, "gr", **opts)
-    if r["iterations"] == 0:
-        np.testing.assert_array_equal(vol, plain)
-    else:
-        assert not np.array_equal(vol, plain)
+    vol, m = reconstruct(tiny_case, "gr", out_dir=tmp_path / "g", **opts)
+    info = m["method_info"]
+    r = info["refine"]
+    assert r["lam"] == info["config"]["refine_lam"] and 0 <= r["iterations"] <= r["cap"]
+    assert r["curve"][0][0] == 0 and r["iterations"] in [c[0] for c in r["curve"]]
+    assert r["heldout_mse"]["refined"] <= r["heldout_mse"]["start"]
+    assert info["result"]["export"] == {"stem": "gaussians", "is_result": True}
+    g = Gaussians.load_npz(tmp_path / "g" / "gaussians.npz")
+    extent = info["extent"]
+    np.testing.assert_allclose(voxelize(g, tiny_case.geometry, extent=extent), vol,
+                               rtol=1e-5, atol=1e-6)
+    grid, m = reconstruct(tiny_case, "gr", out_dir=tmp_path / "v", refine_output="voxels",
+                          **opts)
+    assert m["method_info"]["result"]["export"]["is_result"] is False
+    assert (tmp_path / "v" / "gaussians_before_voxel_step.npz").exists()
+    assert not (tmp_path / "v" / "gaussians.npz").exists()
+    from mi_grg.evaluation.crosscheck import run_scene
+    with pytest.raises(FileNotFoundError, match="scored a voxel grid"):
+        run_scene(tmp_path / "v", tmp_path / "render")
+    if m["method_info"]["refine"]["iterations"] > 0:
+        assert not np.array_equal(grid, vol)
     capsys.readouterr()
     # without held-out views a decision run needs the stop rule's split: 6 views are too few
-    _, m = reconstruct(tiny_case, "gr", refine="tv", **{**opts, "holdout_every": 0})
+    _, m = reconstruct(tiny_case, "gr", **{**opts, "holdout_every": 0})
     assert "holdout_every=0" in m["method_info"]["refine"]["skipped"]
     assert "refine=tv did nothing: no held-out views" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="refine must be one of"):
         reconstruct(tiny_case, "gr", refine="blur", **opts)
+    with pytest.raises(ConfigError, match="refine_output must be one of"):
+        reconstruct(tiny_case, "gr", refine_output="grid", **opts)
 
 
 def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkeypatch):
     """holdout_every=0: the run trains every view from the start; a second run with the stop
-    rule's split (here one view in 3, as 6 views allow) gives the kept state the decisions
-    start from, and the first run's own final volume is what is refined."""
+    rule's split (here one view in 3, as 6 views allow) gives the kept state the length is
+    decided from, and the first run's own final field is what is refined."""
     import dataclasses
 
     from mi_grg.methods import reconstruct
     from mi_grg.protocol import early_stop
-    from mi_grg.training import refine
+    from mi_grg.training import result
     from mi_grg.training.config import make_config
     from mi_grg.training.trainer import Trainer
     monkeypatch.setattr(early_stop, "STOP_RULE",
                         dataclasses.replace(early_stop.STOP_RULE, holdout_every=3))
     opts = dict(iterations=300, n_points=300, eval_every=200)
-    vol, m = reconstruct(tiny_case, "gr", refine="tv", holdout_every=0, progress=False,
-                         **opts)
+    _, m = reconstruct(tiny_case, "gr", holdout_every=0, progress=False, **opts)
     r = m["method_info"]["refine"]
     assert "skipped" not in r and r["decision_run"]["held_out_views"] == [1, 4]
-    assert r["held_out_views"] == [1, 4] and r["decision_run"]["kept_iteration"] <= 200
+    assert r["decision_run"]["kept_iteration"] <= 200
     assert "a decision run (holdout_every=3)" in capsys.readouterr().err
-    # what refine_volume receives: the decision run's kept state, the run's final volume
+    # what decides: the decision run's kept field, on its held-out views; what is refined:
+    # the run's own final field
     seen = {}
-    real = refine.refine_volume
+    real = result.decide_length
 
-    def spy(case, kept, final, *, holdout_every, progress=True):
-        seen.update(kept=kept, final=final, every=holdout_every)
-        return real(case, kept, final, holdout_every=holdout_every, progress=progress)
-    monkeypatch.setattr(refine, "refine_volume", spy)
+    def spy(trainer, kept, progress=True):
+        seen.update(held=list(trainer.held_idx), kept=result.field_volume(trainer, kept))
+        return real(trainer, kept, progress)
+    monkeypatch.setattr(result, "decide_length", spy)
     t = Trainer(tiny_case, make_config("gr", holdout_every=0, **opts), progress=False)
     t.run()
-    out, info = refine.refine_tv(t, progress=False)
-    # (the voxeliser's scatter-adds sum in thread order: two calls differ in the last bits)
-    np.testing.assert_allclose(seen["final"], t.volume(), rtol=1e-5, atol=1e-7)
-    assert seen["every"] == 3 and not np.array_equal(seen["kept"], seen["final"])
-    assert info["decision_run"]["held_out_views"] == [1, 4] and out.shape == (16, 16, 16)
-    budget = reconstruct(tiny_case, "gr", refine="tv", holdout_every=0, progress=False,
+    _, _, info = result.finish(t, progress=False)
+    assert seen["held"] == [1, 4] and info["refine"]["decision_run"]["held_out_views"] == [1, 4]
+    final = result.field_volume(t, result._averaged(t, t.field_gaussians()))
+    assert not np.allclose(seen["kept"], final)
+    budget = reconstruct(tiny_case, "gr", holdout_every=0, progress=False,
                          time_budget=30, n_points=300)[1]["method_info"]["refine"]
     assert "time_budget" in budget["skipped"]

@@ -634,6 +634,12 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     if not run.is_dir():
         raise FileNotFoundError(f"run directory {run} does not exist; {how}")
     npz = run / "gaussians.npz"
+    if not npz.is_file() and (run / "gaussians_before_voxel_step.npz").is_file():
+        raise FileNotFoundError(f"{run} scored a voxel grid (refine_output=voxels): its "
+                                "Gaussians, gaussians_before_voxel_step.npz, are not its "
+                                "result, so there is no result to render as Gaussians; "
+                                "rerun without refine_output=voxels to export it as "
+                                "Gaussians")
     if not npz.is_file():
         resume = (" (checkpoint.npz is there: finish the run with the same command and "
                   "--resume)" if (run / "checkpoint.npz").is_file() else "")

@@ -45,14 +45,15 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 
 #: Fields that act only after training (on the returned state): a resume may change them,
 #: since no checkpointed state depends on them, but a finished run is stale for them.
-AFTER_TRAINING = ("refine",)
+AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
+                  "fit_iterations", "voxel_average")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
 # without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
 PRESETS = {
     "gr": {},
     "r2": {"sigma_d": 0.0, "use_pga": False, "use_graph_field": False, "lambda_lap": 0.0,
-           "refine": "none"},
+           "refine": "none", "voxel_average": 0.0},
 }
 
 
@@ -61,8 +62,13 @@ INIT_VOLUMES = ("fdk", "pdhg")
 
 #: What runs after training (``Protocol.refine``): "none", or "tv": a data-consistent
 #: total-variation refinement of the voxelised result whose weight and length the
-#: held-out views choose (``mi_grg.training.refine``).
+#: held-out views choose (``mi_grg.training.result``).
 REFINE_MODES = ("none", "tv")
+
+#: What a refined run exports (``Protocol.refine_output``): "gaussians", the refined volume
+#: fitted back into the Gaussians (what is exported is what is scored), or "voxels", the
+#: refined grid itself as vol_pred, the Gaussians before it exported under another name.
+REFINE_OUTPUTS = ("gaussians", "voxels")
 
 #: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
@@ -205,12 +211,23 @@ class Protocol:
     keep_state: str = STOP_RULE.keep  # state kept: "latest" within the stop margin of the best
                                    # held-out PSNR, or "best" (why: mi_grg.protocol.early_stop)
     refit_iterations: int = 0      # brief refit on all views after stopping
-    refine: str = "tv"             # after training: "tv" refines the voxelised result by
-                                   # TV-regularised least squares (PDHG started from it),
-                                   # its weight by Morozov's rule, its length by the held-out
-                                   # residual (mi_grg.training.refine; why the default:
-                                   # docs/benchmarks.md, "TV refinement"); "none": the
-                                   # field as trained (the paper, R2-Gaussian)
+    refine: str = "tv"             # after training: "tv" refines the field by TV-regularised
+                                   # least squares (PDHG) anchored on the Gaussians' own
+                                   # projections, its length chosen by the held-out
+                                   # residual (mi_grg.training.result; why:
+                                   # docs/benchmarks.md, "The field's result"); "none":
+                                   # the field as trained (the paper, R2-Gaussian)
+    refine_lam: float = 0.003      # the refinement's TV weight (PDHG's dimensionless lam)
+    refine_max_iterations: int = 200  # cap on the refinement's length (the held-out
+                                   # residual chooses within it; metrics say when it binds)
+    refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
+                                   # the Gaussians, vol_pred is their voxelisation;
+                                   # "voxels": vol_pred is the refined grid
+    fit_iterations: int = 300      # Adam steps of that fit (it stops early once it
+                                   # matches the grid to mi_grg.training.distill.FIT_STOP_DB)
+    voxel_average: float = 0.75    # share of a voxel's box variance the returned field is
+                                   # blurred by, so that voxelising it gives voxel averages
+                                   # (mi_grg.core.voxel_average); 0: centre samples (paper)
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
                                    # (no effect on training); None: at each held-out
@@ -317,6 +334,16 @@ def _validate(c: dict) -> None:
     if c["refine"] not in REFINE_MODES:
         raise ConfigError(f"refine must be one of {', '.join(REFINE_MODES)}, got "
                           f"{c['refine']!r}")
+    if c["refine_output"] not in REFINE_OUTPUTS:
+        raise ConfigError(f"refine_output must be one of {', '.join(REFINE_OUTPUTS)}, got "
+                          f"{c['refine_output']!r}")
+    if not c["refine_lam"] > 0:
+        raise ConfigError(f"refine_lam must be > 0, got {c['refine_lam']}")
+    if c["refine_max_iterations"] < 1:
+        raise ConfigError("refine_max_iterations must be >= 1")
+    if not c["voxel_average"] <= 1.0:
+        raise ConfigError(f"voxel_average must be a fraction in [0, 1], got "
+                          f"{c['voxel_average']}")
     if c["keep_state"] not in KEEP_STATES:
         raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                           f"got {c['keep_state']!r}")

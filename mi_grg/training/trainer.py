@@ -441,11 +441,13 @@ class Trainer:
         g, density_scale = self._field(raw, density_scale)
         return voxelize(g, self.case.geometry, extent=self.extent, density_scale=density_scale)
 
-    def field_gaussians(self) -> Gaussians:
-        """The returned state as plain Gaussians whose sum is the reconstruction: with the
-        graph field, each density times its multiplier 1 + sum_i w_ij (what gaussians.npz /
-        .ply hold, so that they render ``volume()`` without the graph)."""
-        g, scale = self._field(self.state.raw, self.final_density_scale)
+    def field_gaussians(self, raw=None, density_scale=None) -> Gaussians:
+        """A state (default: the returned one) as plain Gaussians whose sum is its volume:
+        with the graph field, each density times its multiplier 1 + sum_i w_ij, so that
+        they render ``volume()`` without the graph."""
+        if raw is None:
+            raw, density_scale = self.state.raw, self.final_density_scale
+        g, scale = self._field(raw, density_scale)
         return g if scale is None else g.replace(densities=g.densities * scale)
 
     def _field(self, raw, density_scale):
@@ -703,18 +705,22 @@ class Trainer:
                    # what the automatic fields resolved to (lab.staleness.stale_keys compares)
                    "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
-            from mi_grg.data.ply import save_ply
             from mi_grg.evaluation.plotting import plot_log
             from mi_grg.training.log import write_log
             self._save_checkpoint()
             write_log(self.out / "train_log.csv", st.log)
             plot_log(self.out / "train_log.png", st.log, returned)
-            g = self.field_gaussians()
-            g.save_npz(self.out / "gaussians.npz")
-            save_ply(g, self.out / "gaussians.ply")
         return summary
 
     # ------------------------------------------------------------------ held-out views
+    def write_gaussians(self, g: Gaussians, stem: str) -> None:
+        """The exported field (``mi_grg.training.result``) as <stem>.npz and .ply in the
+        output folder (nothing without one)."""
+        if self.out is not None:
+            from mi_grg.data.ply import save_ply
+            g.save_npz(self.out / f"{stem}.npz")
+            save_ply(g, self.out / f"{stem}.ply")
+
     def _heldout_psnr(self, raw) -> float | None:
         """Mean PSNR of the held-out views' projections of ``raw`` (None without any)."""
         if len(self.held_idx) == 0:
@@ -754,14 +760,12 @@ def _train_method(method: str):
         trainer = Trainer(case, cfg, out_dir=out_dir, progress=progress, resume=resume)
         summary = trainer.run()
         summary["config"] = cfg.to_flat()
-        if cfg.protocol.refine == "tv":
-            from mi_grg.training.refine import refine_tv
-            vol, summary["refine"] = refine_tv(trainer, progress)
-            if "skipped" in summary["refine"]:     # said, not only recorded
-                print(f"refine=tv did nothing: {summary['refine']['skipped']}; the trained "
-                      "field is returned unrefined", file=sys.stderr)
-            return vol, summary
-        return trainer.volume(), summary
+        from mi_grg.training.result import finish
+        vol, g, summary["result"] = finish(trainer, progress)
+        if "refine" in summary["result"]:
+            summary["refine"] = summary["result"].pop("refine")
+        trainer.write_gaussians(g, summary["result"]["export"]["stem"])
+        return vol, summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "
                    "TrainConfig fields (mi_grg.training.config), config (an XML file), resume "

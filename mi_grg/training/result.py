@@ -1,0 +1,253 @@
+"""What a trained run returns and exports: one field, voxel-averaged and refined.
+
+After training, a gr run's result is made in three steps, each optional, and the volume
+it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
+
+1. **Voxel average** (``voxel_average`` = f > 0): the returned field is blurred by f times
+   a voxel's box variance (``mi_grg.core.voxel_average``), so that its voxelisation at
+   voxel centres holds voxel averages, as the ground truth of a scan does.
+2. **TV refinement** (``refine="tv"``): PDHG (``mi_grg.classical.pdhg``) solves
+
+       min_x  1/2 ||A x - b'||^2 + lambda TV(x),   0 <= x,   b' = b - (P(G) - A V(G))
+
+   from x = V(G), G the field, V its voxelisation, P its exact projections, A the Joseph
+   projector. The *anchor* P(G) - A V(G) is the difference between the two forward models
+   on the field itself: without it, the field's start has the residual of the Joseph
+   model's error (at 64^3 several times the noise), and the refinement's first iterations
+   fit that error instead of the data. With it, the start's residual is the field's own.
+   The weight is ``refine_lam``; the length is the held-out choice: from the state kept
+   before the held-out views joined training, PDHG on the fitted views, the iteration
+   count with the lowest held-out residual (0 included: no refinement), within
+   ``refine_max_iterations`` (the record says when that cap binds). That many iterations
+   then run from the returned field on every view. Without held-out views a decision run
+   supplies the kept state (``decision_run``).
+3. **Back into the Gaussians** (``refine_output="gaussians"``): the refined grid is
+   fitted by the field it started from (``mi_grg.training.distill``); vol_pred is that
+   field's voxelisation. ``refine_output="voxels"`` returns the grid itself and exports
+   the Gaussians under ``EXPORT_STEMS["voxels"]``, a name that says they are not it.
+
+Every decision uses the run's own views; the ground truth only enters the research record
+``parts`` (each step's 3-D PSNR, when the case has one), never a choice.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from mi_grg.core.gaussians import Gaussians
+
+#: The exported Gaussians' file stem for each ``refine_output``: "gaussians" when they are
+#: the scored result, another name when the result is a grid they are not.
+EXPORT_STEMS = {"gaussians": "gaussians", "voxels": "gaussians_before_voxel_step"}
+#: PDHG iterations between held-out checks of the refinement's length.
+CHECK_EVERY = 5
+#: Views projected at once by the field's exact projector (bounds its memory).
+VIEW_CHUNK = 5
+
+
+def finish(trainer, progress: bool = True) -> tuple:
+    """(vol_pred [x, y, z] float32, exported Gaussians, info) of a finished ``Trainer``
+    (module docstring); ``info["export"]`` names the export's stem."""
+    cfg = trainer.cfg.protocol
+    geo = trainer.case.geometry
+    t0 = time.perf_counter()
+    field = _averaged(trainer, trainer.field_gaussians())
+    info = {"voxel_average": cfg.voxel_average,
+            "export": {"stem": EXPORT_STEMS["gaussians"], "is_result": True}}
+    parts = _Parts(trainer)
+    parts.add("gaussians", trainer.volume())
+    vol = field_volume(trainer, field)
+    parts.add("voxel_averaged", vol)
+    if cfg.refine == "tv":
+        kept, decided_by, decider = kept_field(trainer, progress)
+        if kept is None:
+            info["refine"] = {"skipped": decided_by["skipped"]}
+            print(f"refine=tv did nothing: {decided_by['skipped']}; the trained field is "
+                  "returned unrefined", file=sys.stderr)
+        else:
+            vol, field, info["refine"] = refine_field(trainer, field, vol, kept, decider,
+                                                      progress)
+            info["refine"].update(decided_by)
+            parts.add("refined_grid", info["refine"].pop("grid", None))
+            if cfg.refine_output == "voxels":
+                info["export"] = {"stem": EXPORT_STEMS["voxels"], "is_result": False}
+    parts.add("export", field_volume(trainer, field) if info["export"]["is_result"] else None)
+    info["parts"] = parts.record
+    info["seconds"] = time.perf_counter() - t0
+    return vol, field, info
+
+
+def field_volume(trainer, g: Gaussians) -> np.ndarray:
+    """Plain Gaussians voxelised on the run's grid at its extent, [x, y, z] float32."""
+    from mi_grg.core.voxelizer import voxelize
+    return voxelize(g, trainer.case.geometry, extent=trainer.extent)
+
+
+def projections(trainer, g: Gaussians, views) -> np.ndarray:
+    """Exact line integrals [view, v, u] of plain Gaussians for view indices ``views``."""
+    import drjit as dr
+    geo = trainer.case.geometry
+    nv, nu = geo.nDetector
+    out = np.empty((len(views), nv, nu), np.float32)
+    with dr.suspend_grad():
+        for i in range(0, len(views), VIEW_CHUNK):
+            v = np.asarray(views[i:i + VIEW_CHUNK])
+            img = trainer._project(g, geo.angles[v], None)
+            out[i:i + len(v)] = np.asarray(img.numpy(), np.float32).reshape(len(v), nv, nu)
+    return out
+
+
+def anchored_data(trainer, g: Gaussians, vol: np.ndarray, views) -> np.ndarray:
+    """b' = b - (P(G) - A V(G)) on ``views`` (module docstring, step 2)."""
+    from mi_grg.core.joseph import forward_project
+    geo = trainer.case.geometry
+    views = np.asarray(views)
+    joseph = forward_project(vol, geo, geo.angles[views])
+    return trainer.case.train[views] - (projections(trainer, g, views) - joseph)
+
+
+def decide_length(trainer, kept: Gaussians, progress: bool = True) -> dict:
+    """The refinement's length from the kept field (module docstring, step 2): PDHG on the
+    fitted views' anchored data, the held-out residual every ``CHECK_EVERY`` iterations.
+    Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "seconds"}."""
+    from mi_grg.classical.pdhg import PDHG
+    from mi_grg.core.joseph import forward_project
+    from tqdm import tqdm
+    cfg, geo = trainer.cfg.protocol, trainer.case.geometry
+    t0 = time.perf_counter()
+    held = np.asarray(trainer.held_idx)
+    fit = np.setdiff1d(np.arange(geo.n_views), held)
+    start = field_volume(trainer, kept)
+    b_fit = anchored_data(trainer, kept, start, fit)
+    b_held = anchored_data(trainer, kept, start, held)
+
+    def held_mse(x):
+        r = forward_project(x, geo, geo.angles[held]) - b_held
+        return float(np.mean(np.square(r, dtype=np.float64)))
+
+    solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start)
+    cap = int(cfg.refine_max_iterations)
+    curve = [(0, held_mse(start))]
+    with tqdm(total=cap, desc="refine: its length", disable=not progress, leave=False) as bar:
+        for it in range(1, cap + 1):
+            solver.step()
+            bar.update(1)
+            if it % CHECK_EVERY == 0 or it == cap:
+                x = np.asarray(solver.x.numpy(), np.float32).reshape(geo.nVoxel)
+                curve.append((it, held_mse(x)))
+    best = min(curve, key=lambda c: c[1])[0]
+    return {"iterations": best, "at_cap": best == cap, "curve": curve,
+            "seconds": time.perf_counter() - t0}
+
+
+def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, decider,
+                 progress: bool = True) -> tuple:
+    """(vol_pred, exported Gaussians, info) of steps 2-3 for the returned ``field`` (plain,
+    voxel-averaged) with voxelisation ``vol``; ``kept`` decides the length on the held-out
+    views of ``decider`` (the trainer itself, or its decision run)."""
+    from mi_grg.classical.pdhg import pdhg
+    from mi_grg.training.distill import fit_to_volume
+    cfg, geo = trainer.cfg.protocol, trainer.case.geometry
+    length = decide_length(decider, kept, progress)
+    info = {"lam": cfg.refine_lam, "iterations": length["iterations"],
+            "at_cap": length["at_cap"], "cap": cfg.refine_max_iterations,
+            "heldout_mse": {"start": length["curve"][0][1],
+                            "refined": min(c[1] for c in length["curve"])},
+            "curve": length["curve"], "decision_seconds": length["seconds"]}
+    if length["at_cap"]:
+        print(f"refine=tv: the held-out residual still fell at refine_max_iterations="
+              f"{cfg.refine_max_iterations}; a higher cap may pay", file=sys.stderr)
+    if length["iterations"] == 0:
+        return vol, field, {**info, "grid": vol}
+    t0 = time.perf_counter()
+    every = np.arange(geo.n_views)
+    grid = pdhg(anchored_data(trainer, field, vol, every), geo, n_iter=length["iterations"],
+                lam=cfg.refine_lam, init=vol, progress=False)
+    info["final_seconds"] = time.perf_counter() - t0
+    info["grid"] = grid
+    if cfg.refine_output == "voxels":
+        return grid, field, info
+    t0 = time.perf_counter()
+    fitted, fit = fit_to_volume(field, geo, grid, lr=_fit_rates(trainer),
+                                iterations=trainer.cfg.protocol.fit_iterations,
+                                extent=trainer.extent, progress=progress)
+    info["fit"] = {**fit, "seconds": time.perf_counter() - t0}
+    return field_volume(trainer, fitted), fitted, info
+
+
+def kept_field(trainer, progress: bool = True) -> tuple:
+    """(the voxel-averaged kept field or None, a record, the trainer whose held-out views
+    judge it): the state kept before the held-out views joined training, or without
+    held-out views the decision run's."""
+    st = trainer.state
+    if len(trainer.held_idx) == 0:
+        run, record = decision_run(trainer, progress)
+        if run is None:
+            return None, record, None
+        kept = run.field_gaussians(run.state.kept_raw, run.state.kept_density_scale)
+        return _averaged(trainer, kept), {"decision_run": record}, run
+    if st.kept_raw is None:
+        return None, {"skipped": "no state kept before the held-out views joined"}, None
+    kept = trainer.field_gaussians(st.kept_raw, st.kept_density_scale)
+    return _averaged(trainer, kept), {}, trainer
+
+
+def decision_run(trainer, progress: bool = True) -> tuple:
+    """(the decision run's finished ``Trainer`` or None, record) for a run without held-out
+    views: the same configuration with the stop rule's split, whose kept state decides the
+    refinement's length; None with the reason in ``record["skipped"]`` when none can be
+    made (a time_budget, too few views for the split, no kept state)."""
+    from mi_grg.protocol.early_stop import STOP_RULE
+    from mi_grg.protocol.split import decision_split
+    from mi_grg.training.config import TrainConfig
+    every = STOP_RULE.holdout_every
+    why = "no held-out views to decide on (holdout_every=0), and "
+    if trainer.cfg.run.time_budget is not None:
+        return None, {"skipped": why + "a decision run would train past the time_budget"}
+    try:
+        decision_split(trainer.case.geometry.n_views, every, "refine=tv's decision run")
+    except ValueError as e:
+        return None, {"skipped": why + str(e)}
+    cfg = TrainConfig.from_flat({**trainer.cfg.to_flat(), "holdout_every": every,
+                                 "refine": "none"})
+    print(f"refine=tv with holdout_every=0: a decision run (holdout_every={every}) decides "
+          "the refinement; it trains a second time", file=sys.stderr)
+    t0 = time.perf_counter()
+    # type(trainer), not an import: the trainer module imports this one
+    run = type(trainer)(trainer.case, cfg, progress=progress)
+    summary = run.run()
+    if run.state.kept_raw is None:
+        return None, {"skipped": why + "the decision run kept no state before its views "
+                                       "joined"}
+    return run, {"holdout_every": every, "seconds": time.perf_counter() - t0,
+                 "kept_iteration": summary["kept_iteration"],
+                 "held_out_views": run.held_idx.tolist()}
+
+
+def _averaged(trainer, g: Gaussians) -> Gaussians:
+    from mi_grg.core.voxel_average import voxel_average
+    f = trainer.cfg.protocol.voxel_average
+    return voxel_average(g, trainer.case.geometry, f) if f > 0 else g
+
+
+def _fit_rates(trainer) -> dict:
+    o = trainer.cfg.optim
+    return {"positions": o.lr_position, "raw_densities": o.lr_density,
+            "raw_scales": o.lr_scale, "raw_rotations": o.lr_rotation}
+
+
+class _Parts:
+    """Research record: each step's 3-D PSNR against the ground truth (None without one)."""
+
+    def __init__(self, trainer):
+        self.gt = getattr(trainer.case, "vol_gt", None)
+        self.record = {}
+
+    def add(self, name: str, vol) -> None:
+        if self.gt is None or vol is None:
+            self.record[name] = None
+            return
+        from mi_grg.evaluation.metrics import psnr_3d
+        self.record[name] = float(psnr_3d(vol, self.gt))
