@@ -70,7 +70,9 @@ def one(phantom: str, n: int, method: str, options: dict, logs: str | None = Non
                                          "n_gaussians")})
         if "refine" in info:       # gr's default refines after training (its decision)
             out["refine"] = {k: info["refine"].get(k) for k in (
-                "lam", "iterations", "decision_seconds", "final_seconds", "skipped")}
+                "lam", "iterations", "at_cap", "decision_seconds", "final_seconds", "skipped")}
+        if "result" in info:       # each step's 3-D PSNR (mi_grg.training.result)
+            out["parts"] = info["result"].get("parts")
     elif info and "chosen" in info:        # a classical method's held-out decision
         out["chosen"] = info["chosen"]
     return out

@@ -178,7 +178,7 @@ def _morozov(candidates: list):
     included). Why not the held-out PSNR: from a start that already fits the data (a
     refinement), projections of the held-out views improve while a too weak weight fits
     noise into directions no view sees; the fitted residual falling below the noise level
-    shows it (docs/benchmarks.md, "TV refinement")."""
+    shows it (`git show d7f240b:docs/benchmarks.md`, "TV refinement")."""
     noise = noise_level(h for c in candidates for _, h, _ in c["residuals"])
     for c in candidates:
         s, h, _ = min(c["residuals"], key=lambda r: (r[1], r[0]))
