@@ -53,7 +53,7 @@ QUANTUM = {"rows": 4096, "cols": 4096, "slices": 4096, "near": 16}
 # Lanes (near: records) per Gaussian before any count was seen (an overflow then sets
 # the real one); near-source records are rare: none until one is seen
 INITIAL_PER_GAUSSIAN = {"rows": 4.0, "cols": 2.0, "slices": 1.0, "near": 0.0}
-# Floats of a view's detector-value input (5 used)
+# Floats of a view's detector-value input (6 used)
 DETECTOR_PAD = 16
 
 
@@ -102,7 +102,8 @@ def _view_inputs(geometry) -> list:
             # a per-view scan whose detector values differ: they are inputs too, padded
             # (a width-1 input's alignment would key the recording)
             vals = np.zeros(DETECTOR_PAD, np.float32)
-            vals[:5] = fr.detector_values(0)
+            h, a_u, a_v, du, dv = fr.detector_values(0)
+            vals[:6] = (h, h * h, a_u, a_v, du, dv)    # h^2 rounded once, as DetectorConstants
             out[-1]["det"] = _owned(mi.Float(vals))
     return out
 
@@ -112,8 +113,8 @@ def _detector(static: _Static, view: dict) -> DetectorConstants:
     views share them, read from the inputs (``view["det"]``) where they differ."""
     det = DetectorConstants(static.frames, static.geometry, static.extent)
     if "det" in view:
-        h, a_u, a_v, du, dv = (dr.gather(mi.Float, view["det"], mi.UInt32(k)) for k in range(5))
-        det.h, det.h2, det.a_u, det.a_v, det.du, det.dv = h, h * h, a_u, a_v, du, dv
+        vals = [dr.gather(mi.Float, view["det"], mi.UInt32(k)) for k in range(6)]
+        det.h, det.h2, det.a_u, det.a_v, det.du, det.dv = vals
     return det
 
 
