@@ -203,3 +203,47 @@ def one_thread_fixture():
     dr.set_thread_count(1)
     yield
     dr.set_thread_count(threads)
+
+
+# ---------------------------------------------------------------- in and out
+def _wobbling_case(views=6, tests=3):
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    base = default_geometry(n=16, det=24, views=views)
+    test = default_test_angles(tests)
+    allv = wobbling(base.with_angles(np.concatenate([base.angles, test])))
+    return simulate_case("shepp", allv.with_angles(base.angles), test, NoiseModel(), seed=3), allv
+
+
+def test_save_and_load_keep_the_vectors(tmp_path):
+    import json
+    import mi_grg as m
+    case, allv = _wobbling_case()
+    m.save_case(case, tmp_path / "c")
+    meta = json.loads((tmp_path / "c" / "meta_data.json").read_text())
+    entry = meta["proj_test"][1]
+    np.testing.assert_array_equal(entry["vector"], allv.view_vectors([entry["angle"]])[0])
+    back = m.load_case(tmp_path / "c", rescale=False)
+    np.testing.assert_array_equal(back.geometry.view_vectors(), case.geometry.view_vectors())
+    np.testing.assert_array_equal(back.test_geometry.view_vectors(),
+                                  case.test_geometry.view_vectors())
+    # a mix of entries with and without vectors, and a bad row, are one-line errors
+    del meta["proj_test"][1]["vector"]
+    (tmp_path / "c" / "meta_data.json").write_text(json.dumps(meta))
+    with pytest.raises(m.data.dataset.DatasetError, match=r"proj_train\[0\] has a \"vector\" "
+                       r"but proj_test\[1\] has none"):
+        m.load_case(tmp_path / "c")
+    meta["proj_test"][1]["vector"] = [1.0] * 11
+    (tmp_path / "c" / "meta_data.json").write_text(json.dumps(meta))
+    with pytest.raises(m.data.dataset.DatasetError, match=r"proj_test\[1\]: vector must be 12"):
+        m.load_case(tmp_path / "c")
+
+
+def test_scene_xml_states_a_per_view_scan(tmp_path):
+    from mi_grg.data.scene import Scan, load_scan, write_scan_xml
+    case, _ = _wobbling_case()
+    path = write_scan_xml(Scan(geometry=case.geometry, test_angles=case.test_angles), tmp_path / "s.xml")
+    back = load_scan(path)
+    np.testing.assert_array_equal(back.geometry.view_vectors(), case.geometry.view_vectors())
+    np.testing.assert_array_equal(back.geometry.view_vectors(case.test_angles),
+                                  case.geometry.view_vectors(case.test_angles))
