@@ -141,12 +141,30 @@ def binned_geometry(paths, angles, base, known, opts: dict) -> tuple:
                            f"{opts['scene']} nDetector = {list(base.nDetector)}")
     # binning drops trailing rows/columns: the kept detector's centre moves by half of them
     (dv, du), rv, ru = base.dDetector, nv_raw % b, nu_raw % b
+    if base.per_view:
+        return _binned_per_view(base, b, (nv_raw, nu_raw), opts), (nv_raw, nu_raw)
     geo = base.replace(nDetector=(nv_raw // b, nu_raw // b),
                        sDetector=((nv_raw // b) * b * dv, (nu_raw // b) * b * du),
                        offDetector=(base.offDetector[0] - rv / 2 * dv,
                                     base.offDetector[1] - ru / 2 * du),
                        angles=opts["angle_sign"] * angles)
     return geo, (nv_raw, nu_raw)
+
+
+def _binned_per_view(base: Geometry, b: int, raw_shape, opts: dict) -> Geometry:
+    """``binned_geometry`` of a per-view scan: its rows' steps x B, centres moved by half
+    the dropped rows / columns."""
+    if opts["angle_sign"] != 1 or opts["cor"] is not None:
+        raise DatasetError("--angle-sign and --cor do not apply to a per-view geometry "
+                           "(its vectors place source and detector)")
+    nv_raw, nu_raw = raw_shape
+    vec = base.view_vectors()
+    vec[:, 3:6] -= (nu_raw % b) / 2 * vec[:, 6:9] + (nv_raw % b) / 2 * vec[:, 9:12]
+    vec[:, 6:12] *= b
+    (dv, du) = base.dDetector
+    return base.replace(nDetector=(nv_raw // b, nu_raw // b),
+                        sDetector=((nv_raw // b) * b * dv, (nu_raw // b) * b * du),
+                        vectors=vec, vector_angles=None)
 
 
 def given_cor(geo: Geometry, raw_shape, opts: dict) -> tuple:

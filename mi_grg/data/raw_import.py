@@ -80,7 +80,8 @@ def _check_out(out: Path, source: Path, opts: dict, overwrite: bool) -> None:
     if source.suffix.lower() not in (".pickle", ".pkl"):
         frames += input_paths(source)
     inputs = [source, *frames, *{p.parent for p in frames if p.is_file()},
-              *input_paths(opts["scene"]), *input_paths(opts["angles"])]
+              *input_paths(opts["scene"]), *input_paths(opts["angles"]),
+              *input_paths(opts["geometry"])]
     check_out(out, IMPORT, inputs, overwrite)
 
 
@@ -88,6 +89,10 @@ def _tiff_source(source: Path, opts: dict, record: dict) -> tuple:
     """(projection paths in view order, angles (radians, before --angle-sign), the scene's
     geometry or None, the FIPS keys or None, length unit)."""
     from mi_grg.data.scene import ScanError, load_scan
+    if opts.get("geometry"):
+        return _geometry_file_source(source, opts, record)
+    if source.suffix.lower() == ".xtekct":
+        return _xtek_source(source, opts, record)
     if opts.get("scene"):
         try:
             scan = load_scan(opts["scene"])
@@ -116,6 +121,73 @@ def _tiff_source(source: Path, opts: dict, record: dict) -> tuple:
     record["source"] = {"kind": "fips", "text": str(source), "keys": known,
                         "unknown_keys": unknown}
     return paths, angles, None, known, opts.get("unit") or "mm"
+
+
+def _numbered(paths: list, n: int, what: str) -> list:
+    """``paths`` in view order, ``n`` of them (numbering checked where every name has one)."""
+    if len(paths) != n:
+        raise DatasetError(f"{what}: {len(paths)} TIFFs for {n} views")
+    if all(frame_number(p) for p in paths):
+        paths = check_numbering(paths, n, f"{what}: {n} views",
+                                first=min(frame_number(p)[0] for p in paths))
+    return paths
+
+
+def _per_view_base(mode, rows, angles, nDetector, path) -> Geometry:
+    """A per-view geometry of the raw frames (the volume is planned later)."""
+    from mi_grg.data.geometry_files import nominal_fields
+    f = nominal_fields(rows, nDetector, mode)
+    if angles is not None:
+        f["angles"] = angles
+    try:
+        return Geometry(nDetector=nDetector, nVoxel=(1, 1, 1), sVoxel=(1e-6,) * 3,
+                        vectors=rows, **f)
+    except GeometryError as e:
+        raise DatasetError(f"{path}: {e}") from None
+
+
+def _geometry_file_source(source: Path, opts: dict, record: dict) -> tuple:
+    """``--geometry FILE`` (ASTRA vectors, or RTK XML with --pixel-size) beside a TIFF
+    folder / glob: (paths, nominal angles, per-view geometry, None, unit)."""
+    from mi_grg.data.geometry_files import read_astra_vectors, read_rtk_geometry
+    from mi_grg.data.raw_readers import read_tiff
+    gpath = Path(opts["geometry"])
+    if opts.get("scene"):
+        raise DatasetError("give --geometry or --scene, not both")
+    paths = tiff_list(source)
+    shape = read_tiff(paths[0]).shape
+    if gpath.suffix.lower() == ".xml":
+        if opts.get("pixel_size") is None:
+            raise DatasetError(f"{gpath}: an RTK geometry needs --pixel-size (its detector "
+                               "pixel pitch; RTK keeps it in the projection files)")
+        px = opts["pixel_size"]
+        mode, rows, angles = read_rtk_geometry(gpath, (px, px), shape)
+        kind = "tiff+rtk-geometry"
+    else:
+        rows, mode, angles, kind = read_astra_vectors(gpath), "cone", None, "tiff+astra-vectors"
+    paths = _numbered(paths, len(rows), f"{source} with {gpath}")
+    base = _per_view_base(mode, rows, angles, shape, gpath)
+    record["source"] = {"kind": kind, "geometry": str(gpath), "views": len(rows)}
+    return paths, base.angles, base, None, opts.get("unit") or "file unit"
+
+
+def _xtek_source(source: Path, opts: dict, record: dict) -> tuple:
+    """A Nikon ``.xtekct`` file and its ``<Name>_NNNN.tif`` projections beside it."""
+    from mi_grg.data.geometry_files import read_xtekct
+    if opts.get("scene") or opts.get("angles"):
+        raise DatasetError(f"{source}: --scene / --angles do not apply (the .xtekct file "
+                           "states the scan)")
+    x = read_xtekct(source)
+    paths = sorted(p for p in source.parent.iterdir()
+                   if p.name.startswith(x["name"]) and p.suffix.lower() in (".tif", ".tiff"))
+    paths = _numbered(paths, x["angles"].size, f"{source.parent}/{x['name']}_*.tif")
+    try:
+        base = Geometry(nVoxel=(1, 1, 1), sVoxel=(1e-6,) * 3, angles=x["angles"],
+                        **x["geometry"])
+    except GeometryError as e:
+        raise DatasetError(f"{source}: {e}") from None
+    record["source"] = {"kind": "xtekct", "file": str(source), "angles": x["angles_from"]}
+    return paths, base.angles, base, None, opts.get("unit") or "mm"
 
 
 def _from_tiffs(source: Path, out: Path, opts: dict, record: dict) -> tuple:
@@ -173,7 +245,8 @@ def _pickle_options_given(opts: dict) -> list:
     given = [f for f, k in (("--flats", "flats"), ("--darks", "darks"), ("--cor", "cor"),
                             ("--scene", "scene"), ("--angles", "angles"),
                             ("--nVoxel", "nVoxel"), ("--sVoxel", "sVoxel"),
-                            ("--train-views", "train_views")) if opts[k] is not None]
+                            ("--train-views", "train_views"), ("--geometry", "geometry"),
+                            ("--pixel-size", "pixel_size")) if opts[k] is not None]
     return given + [f for f, bad in (("--bin", opts["bin"] != 1),
                                      ("--test-views", bool(opts["test_views"])),
                                      ("--free-ray", opts["free_ray"] != "auto"),
@@ -231,7 +304,8 @@ def _write(out: Path, case: Case, record: dict, check: bool, proj_all, vol_geo) 
 def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=None,
                 bin=1, train_views=None, test_views=0, seed=0, reference=None,
                 nVoxel=None, sVoxel=None, scene=None, angles=None, angle_sign=1,
-                unit=None, check=False, overwrite=False, max_memory=None) -> dict:
+                unit=None, check=False, overwrite=False, max_memory=None, geometry=None,
+                pixel_size=None) -> dict:
     """``mi-grg import``: see the module docstring and docs/real_data.md. Returns the
     import record (also written as OUT/import.json). Nothing is written before every
     input is checked, never into or over an input, and an existing ``out`` is replaced
@@ -241,7 +315,8 @@ def import_scan(source, out, *, flats=None, darks=None, free_ray="auto", cor=Non
         flats=flats, darks=darks, free_ray=free_ray, cor=cor, bin=bin,
         train_views=train_views, test_views=test_views, seed=seed, reference=reference,
         nVoxel=nVoxel, sVoxel=sVoxel, scene=scene, angles=angles, angle_sign=angle_sign,
-        unit=unit, max_memory=default_memory_limit() if max_memory is None else max_memory))
+        unit=unit, max_memory=default_memory_limit() if max_memory is None else max_memory,
+        geometry=geometry, pixel_size=pixel_size))
     _check_out(out, source, opts, overwrite)
     record = {"command": "mi-grg import", "options": opts}
     if source.suffix.lower() in (".pickle", ".pkl"):   # its own split; all = train + val
