@@ -210,12 +210,11 @@ def _with_vectors(geometry: Geometry, fields: dict, test_angles) -> Geometry:
         if "test_vectors" in fields:
             raise ScanError("test_vectors needs vectors (the training views' rows)")
         return geometry
+    if len(test_angles) and "test_vectors" not in fields:
+        raise ScanError("a per-view scan with test views needs test_vectors too")
     rows = _rows("vectors", fields["vectors"], geometry.n_views)
     if len(test_angles):
-        if "test_vectors" not in fields:
-            raise ScanError("a per-view scan with test views needs test_vectors too")
-        rows = np.concatenate([rows, _rows("test_vectors", fields["test_vectors"],
-                                           len(test_angles))])
+        rows = np.concatenate([rows, _rows("test_vectors", fields["test_vectors"], len(test_angles))])
     return geometry.replace(vectors=rows, vector_angles=np.concatenate(
         [geometry.angles, np.asarray(test_angles, np.float64)]))
 
