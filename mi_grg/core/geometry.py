@@ -159,6 +159,7 @@ class Geometry:
             key = (id(vec),) + key[1:]
             _CHECKED[id(vec)] = vec
             _CHECKED_KEYS[id(vec)] = key
+            weakref.finalize(vec, _CHECKED_KEYS.pop, id(vec), None)
         va = self.angles if self.vector_angles is None else np.array(
             self.vector_angles, np.float64).reshape(-1)
         if va.shape != (vec.shape[0],):
