@@ -6,7 +6,6 @@ conventions of docs/conventions.md written out by hand; closed-form line integra
 Gaussians and of a ball on those rays; the adjoint dot-product identity; and the traced
 training step for the recorded one.
 """
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from mi_grg.core.geometry import Geometry, GeometryError, circular_angles
 from mi_grg.core.joseph import back_project, forward_project
 from mi_grg.core.projector import project
 from mi_grg.data.orbits import half_fan, wobbling
+from test_frozen_step import one_thread  # noqa: F401  (fixture: one Dr.Jit thread)
 from test_projector import as_arrays, quat_matrix, random_gaussians
 
 
@@ -155,7 +155,7 @@ def test_joseph_adjoint_on_vectors(mode, rng):
 
 
 @pytest.mark.parametrize("mode", ["cone", "parallel"])
-def test_circular_scan_given_as_vectors_projects_bit_for_bit(mode, rng, one_thread_fixture):
+def test_circular_scan_given_as_vectors_projects_bit_for_bit(mode, rng, one_thread):
     """(One thread: float atomics then add in one order.)"""
     geo = scan(mode, offDetector=(0.05, 0.2))
     vgeo = geo.as_vectors()
@@ -181,7 +181,7 @@ def test_voxelizer_bounds_follow_the_volume_box(rng):
 
 
 # ---------------------------------------------------------------- training
-def test_frozen_step_on_a_wobbling_orbit_equals_traced(one_thread_fixture):
+def test_frozen_step_on_a_wobbling_orbit_equals_traced(one_thread):
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
     from test_frozen_step import _assert_equal, _frozen_calls, _state
@@ -195,14 +195,6 @@ def test_frozen_step_on_a_wobbling_orbit_equals_traced(one_thread_fixture):
     assert all(r[2] is not None for r in results), said
     assert fz.n_recordings == 1          # one recording serves every view's own detector
     _assert_equal(tr, raw, results)
-
-
-@pytest.fixture
-def one_thread_fixture():
-    threads = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(threads)
 
 
 # ---------------------------------------------------------------- in and out

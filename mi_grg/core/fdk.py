@@ -122,6 +122,25 @@ def _magnification(s, cone, DSD, DSO):
     return DSD * r, dr.square(DSO * r)
 
 
+def _bilinear(q, offset, cu, cv, nu: int, nv: int):
+    """Bilinear sample of the view starting at flat index ``offset`` of ``q`` at continuous
+    pixel indices (cu, cv) (pixel centres at integers; zero outside the detector)."""
+    Float, UInt, Int = mi.Float, mi.UInt32, mi.Int32
+    fu, fv = dr.floor(cu), dr.floor(cv)
+    iu, iv = Int(fu), Int(fv)
+    wu1, wv1 = cu - fu, cv - fv
+    wu0, wv0 = 1.0 - wu1, 1.0 - wv1
+    mu0 = (iu >= 0) & (iu < nu)
+    mu1 = (iu >= -1) & (iu < nu - 1)
+    mv0 = (iv >= 0) & (iv < nv)
+    mv1 = (iv >= -1) & (iv < nv - 1)
+    base = Int(offset) + iv * nu + iu
+    return (wv0 * (wu0 * dr.gather(Float, q, UInt(base), mv0 & mu0)
+                   + wu1 * dr.gather(Float, q, UInt(base + 1), mv0 & mu1))
+            + wv1 * (wu0 * dr.gather(Float, q, UInt(base + nu), mv1 & mu0)
+                     + wu1 * dr.gather(Float, q, UInt(base + nu + 1), mv1 & mu1)))
+
+
 @dr.syntax
 def _backproject_kernel(q, cos_t, sin_t, geo: Geometry, n_views):
     """Voxel-driven, distance-weighted back-projection of flat filtered projections ``q``
@@ -153,20 +172,7 @@ def _backproject_kernel(q, cos_t, sin_t, geo: Geometry, n_views):
         m, wgt = _magnification(s, cone, DSD, DSO)
         cu = dr.fma(t * m, 1.0 / du, cu0)
         cv = dr.fma(-z * m, 1.0 / dv, cv0)     # e_v = -z
-        fu, fv = dr.floor(cu), dr.floor(cv)
-        iu, iv = Int(fu), Int(fv)
-        wu1, wv1 = cu - fu, cv - fv
-        wu0, wv0 = 1.0 - wu1, 1.0 - wv1
-        mu0 = (iu >= 0) & (iu < nu)
-        mu1 = (iu >= -1) & (iu < nu - 1)
-        mv0 = (iv >= 0) & (iv < nv)
-        mv1 = (iv >= -1) & (iv < nv - 1)
-        base = Int(k * n_pix) + iv * nu + iu
-        val = (wv0 * (wu0 * dr.gather(Float, q, UInt(base), mv0 & mu0)
-                      + wu1 * dr.gather(Float, q, UInt(base + 1), mv0 & mu1))
-               + wv1 * (wu0 * dr.gather(Float, q, UInt(base + nu), mv1 & mu0)
-                        + wu1 * dr.gather(Float, q, UInt(base + nu + 1), mv1 & mu1)))
-        acc += wgt * val
+        acc += wgt * _bilinear(q, k * n_pix, cu, cv, nu, nv)
         k += 1
     return acc
 
@@ -238,20 +244,7 @@ def _backproject_vectors_kernel(q, tables, geo: Geometry, n_views):
         h = [hit[i] - t[6 + i] for i in range(3)]
         cu = h[0] * t[9] + h[1] * t[10] + h[2] * t[11] + (nu / 2 - 0.5)
         cv = h[0] * t[12] + h[1] * t[13] + h[2] * t[14] + (nv / 2 - 0.5)
-        fu, fv = dr.floor(cu), dr.floor(cv)
-        iu, iv = Int(fu), Int(fv)
-        wu1, wv1 = cu - fu, cv - fv
-        wu0, wv0 = 1.0 - wu1, 1.0 - wv1
-        mu0 = (iu >= 0) & (iu < nu)
-        mu1 = (iu >= -1) & (iu < nu - 1)
-        mv0 = (iv >= 0) & (iv < nv)
-        mv1 = (iv >= -1) & (iv < nv - 1)
-        base = Int(k * n_pix) + iv * nu + iu
-        val = (wv0 * (wu0 * dr.gather(Float, q, UInt(base), mv0 & mu0)
-                      + wu1 * dr.gather(Float, q, UInt(base + 1), mv0 & mu1))
-               + wv1 * (wu0 * dr.gather(Float, q, UInt(base + nu), mv1 & mu0)
-                        + wu1 * dr.gather(Float, q, UInt(base + nu + 1), mv1 & mu1)))
-        acc += wgt * val
+        acc += wgt * _bilinear(q, k * n_pix, cu, cv, nu, nv)
         k += 1
     return acc
 
