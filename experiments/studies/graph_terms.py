@@ -1,6 +1,6 @@
 """Benchmark: how strong are GR-Gaussian's graph terms against the data term, at the paper's weights?
 
-    .venv/bin/python bench/graph_terms.py [--results results/cpu] [--cases shepp shell bone]
+    .venv/bin/python experiments/studies/graph_terms.py [--results results/cpu] [--cases shepp shell bone]
                                           [--view-step 3]
 
 For each case, the trained gr state of the experiment suite's Table 1
@@ -42,7 +42,7 @@ from mi_grg.training.losses import projection_loss
 from mi_grg.core.projector import project_dr
 from mi_grg.training.trainer import REFERENCE_N
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def measure(case_dir: Path, run_dir: Path, view_step: int) -> dict:
@@ -130,7 +130,7 @@ def main(argv=None) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "graph_terms.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     lines = [
-        "# Graph terms against the data term (`bench/graph_terms.py`)", "",
+        "# Graph terms against the data term (`experiments/studies/graph_terms.py`)", "",
         f"Trained gr states of Table 1 ({shown}), commit {commit}; lambda_lap = "
         f"{cfg.graph.lambda_lap:g}, lambda_g = {cfg.densify.lambda_g:g}, tau_pos = "
         f"{cfg.densify.densify_grad_threshold:g}. Medians over Gaussians; 'ratio' = graph term "

@@ -7,7 +7,7 @@ volumes from $MI_GRG_DATA), one run per variant of the training options, each lo
 the table shows whether it was still rising at the end, with the Gaussian count reached and
 the training time. Run it on a quiet machine, one run at a time.
 
-    MI_GRG_DATA=../shared/data .venv/bin/python bench/dense_volumes.py [--cases bone] \
+    MI_GRG_DATA=../shared/data .venv/bin/python experiments/studies/dense_volumes.py [--cases bone] \
         [--method gr] [--variants "default:;iterations=3000:iterations=3000"] [--tag NAME]
 
 A variant is NAME:key=value,key=value (training options; empty: the defaults).
@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_VARIANTS = ("default:;iterations=3000:iterations=3000;"
                     "cap 1.0/voxel:max_gaussians_per_voxel=1.0")
 
@@ -112,7 +112,7 @@ def _write(rows, args, code) -> None:
 
 
 def markdown(r: dict) -> str:
-    lines = ["# Dense micro-CT volumes: iterations or Gaussians (`bench/dense_volumes.py`)", "",
+    lines = ["# Dense micro-CT volumes: iterations or Gaussians (`experiments/studies/dense_volumes.py`)", "",
              f"{r['method']}, code {r['code']}, {r['cores']} cores, one run per row, one at a "
              f"time; 3-D PSNR logged every {r['log_every']} iterations (not timed).", "",
              "| case | variant | 3-D PSNR | SSIM | iterations | Gaussians (cap) | train (s) "

@@ -1,11 +1,11 @@
 """gr (or r2) against the best fairly tuned classical method, case by case.
 
-The cases and their data are bench/fair_baselines.py's (experiments/suite_cpu.json, 64^3,
+The cases and their data are experiments/studies/fair_baselines.py's (experiments/suite_cpu.json, 64^3,
 25 noisy views, the same simulated data sets), so each gr run is compared with the best
 held-out row of SART, ASD-POCS and PDHG in docs/bench/fair_baselines.json: every decision
 on held-out training views, none on the ground truth.
 
-    MI_GRG_DATA=/work/shared/data .venv/bin/python bench/gr_vs_fair.py \
+    MI_GRG_DATA=/work/shared/data .venv/bin/python experiments/studies/gr_vs_fair.py \
         [--cases shepp,needles,shells] [--method gr] [--label default] \
         [--option lambda_tv=0.2 ...] [--config scenes/gr_paper.xml]
 
@@ -23,7 +23,7 @@ import statistics
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "docs" / "bench" / "gr_vs_fair"
 FAIR = ROOT / "docs" / "bench" / "fair_baselines.json"
 CLASSICAL = ("sart", "asd-pocs", "pdhg", "pdhg-morozov", "pdhg-200")
@@ -89,9 +89,9 @@ def summary(rows: list, best: dict) -> dict:
 
 
 def markdown(rows: list, best: dict) -> str:
-    lines = ["# gr against the best fairly tuned classical method (`bench/gr_vs_fair.py`)",
+    lines = ["# gr against the best fairly tuned classical method (`experiments/studies/gr_vs_fair.py`)",
              "", "Cases of experiments/suite_cpu.json (64^3, 96^2 detector, 25 noisy views), "
-             "the data sets of bench/fair_baselines.py; *best classical* = the best held-out "
+             "the data sets of experiments/studies/fair_baselines.py; *best classical* = the best held-out "
              "row of SART, ASD-POCS and PDHG in [fair_baselines.md](fair_baselines.md) "
              "(weights by the one-standard-error rule on held-out views). margin = gr − best "
              "classical, 3-D PSNR in dB. Time: wall-clock seconds on a 2-core machine; the "

@@ -1,6 +1,6 @@
 """Voxel-scale noise in gr's volumes of the dense micro-CT cases (issue 21 item 4).
 
-Two questions about a finished ``bench/dense_volumes.py`` run (its run folder under
+Two questions about a finished ``experiments/studies/dense_volumes.py`` run (its run folder under
 $TMPDIR/dense_volumes/runs/CASE/VARIANT):
 
 1. ``heldout CASE VARIANT``: could the held-out views choose a blur of the volume? For the kept state (the best
@@ -13,9 +13,9 @@ $TMPDIR/dense_volumes/runs/CASE/VARIANT):
    removes the noise that a blur of the output removes. Not a training option: the
    filter is patched into the trainer for this run only.
 
-    MI_GRG_DATA=../shared/data TMPDIR=/tmp/dv .venv/bin/python bench/dense_blur.py \
+    MI_GRG_DATA=../shared/data TMPDIR=/tmp/dv .venv/bin/python experiments/studies/dense_blur.py \
         heldout bone default
-    MI_GRG_DATA=../shared/data TMPDIR=/tmp/dv .venv/bin/python bench/dense_blur.py \
+    MI_GRG_DATA=../shared/data TMPDIR=/tmp/dv .venv/bin/python experiments/studies/dense_blur.py \
         filtered bone 0.5
 
 Prints one JSON line per result (collected in docs/bench/dense_blur.json; docs/benchmarks.md,
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SIGMAS = (0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.85, 1.0)
 
 
@@ -83,7 +83,7 @@ def filtered(name: str, sigma_vox: float) -> None:
     import mi_grg.training.trainer as trainer
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.methods import reconstruct
-    from bench.dense_volumes import blur_scores
+    from dense_volumes import blur_scores        # this folder's study: on sys.path below
     case = _case(name)
     geo = case.geometry
     sf2 = (sigma_vox * float(np.mean(np.asarray(geo.sVoxel) / np.asarray(geo.nVoxel)))) ** 2
@@ -111,6 +111,6 @@ def filtered(name: str, sigma_vox: float) -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
     what, name, arg = sys.argv[1:4]
     heldout(name, arg) if what == "heldout" else filtered(name, float(arg))

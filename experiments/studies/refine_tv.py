@@ -1,7 +1,7 @@
 """gr with and without the TV refinement (``refine="tv"``), against the best fairly tuned
 classical method, case by case.
 
-For each case of bench/fair_baselines.py's data sets (experiments/suite_cpu.json, 64^3, 25
+For each case of experiments/studies/fair_baselines.py's data sets (experiments/suite_cpu.json, 64^3, 25
 noisy views): gr trains at its defaults without refinement and its final volume and the
 state it kept before the held-out views joined are saved ($TMPDIR/refine_tv/CASE, reused
 by a later run; with holdout_every=0 the kept state comes from the refinement's decision
@@ -10,7 +10,7 @@ run); then ``mi_grg.training.refine.refine_volume`` refines them, which is exact
 held-out row of SART, ASD-POCS and PDHG in docs/bench/fair_baselines.json. The 3-D PSNR
 against the ground truth is scored here only; no decision reads it.
 
-    MI_GRG_DATA=/work/shared/data .venv/bin/python bench/refine_tv.py \
+    MI_GRG_DATA=/work/shared/data .venv/bin/python experiments/studies/refine_tv.py \
         [--cases needles,bone] [--runs DIR] [--option iterations=9000 --tag NAME]
 
 ``--option key=value``: gr's training options (e.g. more iterations, holdout_every=0);
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "docs" / "bench" / "refine_tv"
 ALL_CASES = "shepp,shepp-parallel,mni152,shell,needles,shells,bone,cement"
 
@@ -97,9 +97,9 @@ def run_case(name: str, suite, data_root: Path, runs: Path, options: dict) -> di
 
 
 def markdown(rows: list, best: dict) -> str:
-    lines = ["# gr with the TV refinement (`bench/refine_tv.py`)", "",
+    lines = ["# gr with the TV refinement (`experiments/studies/refine_tv.py`)", "",
              "Cases of experiments/suite_cpu.json (64^3, 96^2 detector, 25 noisy views), the "
-             "data sets of bench/fair_baselines.py. *best classical*: the best held-out row "
+             "data sets of experiments/studies/fair_baselines.py. *best classical*: the best held-out row "
              "of SART, ASD-POCS and PDHG in [fair_baselines.md](fair_baselines.md). lam and "
              "iterations: the refinement's decisions from the kept state on the fitted "
              "views (lam: Morozov's rule, the largest weight whose settled fitted residual "
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
                     help="re-write the .md from the .json (no runs; e.g. after the baselines)")
     args = ap.parse_args(argv)
     import sys
-    sys.path.insert(0, str(ROOT / "bench"))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))   # gr_vs_fair: this folder
     from gr_vs_fair import best_classical, parse_option
     from mi_grg.lab.suite import load_suite
     suite = load_suite(args.suite)

@@ -1,7 +1,7 @@
 """The paper's size on this CPU: gr on a 256^3 case end to end (issue 21: <= 60 min, <= 8 GB).
 
-    .venv/bin/python bench/paper_size.py [--n 256] [--budget 3300] [--method gr]
-    .venv/bin/python bench/paper_size.py --collect RUN_DIR --time-log LOG [--fdk FDK_DIR]
+    .venv/bin/python experiments/studies/paper_size.py [--n 256] [--budget 3300] [--method gr]
+    .venv/bin/python experiments/studies/paper_size.py --collect RUN_DIR --time-log LOG [--fdk FDK_DIR]
 
 The run is what a user types (the shepp phantom, 25 noisy cone-beam views of 1.5 n pixels,
 25 noise-free test views, seed 0), timed as one process:
@@ -32,7 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER = "629 s on an RTX 4090 (paper, Table 3, k = 6, X-3D 256^3, 30k iterations)"
 
 
@@ -104,7 +104,7 @@ def _metrics(out: Path) -> dict:
 def markdown(r: dict) -> str:
     x = r["result"]
     return "\n".join([
-        "# The paper's size on this CPU (`bench/paper_size.py`)", "",
+        "# The paper's size on this CPU (`experiments/studies/paper_size.py`)", "",
         f"{x['method']} on shepp {r['n']}^3 (25 noisy cone-beam views of {r['n'] * 3 // 2}^2, "
         f"seed 0), `--option time_budget={r['budget']:g}`; code {x['code']}, "
         f"{r['cores']} cores ({r['machine']}), one process, nothing else running.", "",

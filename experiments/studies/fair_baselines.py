@@ -10,7 +10,7 @@ decides nothing) and the time of the result (the oracle's extra sweeps and scori
 excluded). Targets (issue 22): held-out-stopped ASD-POCS and PDHG within 0.5 dB of their
 oracle on average, at most 30 s per 64^3 case.
 
-    MI_GRG_DATA=/work/shared/data .venv/bin/python bench/fair_baselines.py \
+    MI_GRG_DATA=/work/shared/data .venv/bin/python experiments/studies/fair_baselines.py \
         [--cases shepp,needles,bone] [--reps 1] [--runs sart,asd-pocs,pdhg]
 
 (volume cases such as bone read their source volume from $MI_GRG_DATA.)
@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RUNS = [("sart", "sart", {}), ("asd-pocs", "asd-pocs", {}), ("pdhg", "pdhg", {}),
         ("pdhg-morozov", "pdhg", {"lam_rule": "morozov"}),
         ("pdhg-200", "pdhg", {"n_iter": 200}),     # whether the 60 cap holds PDHG back
@@ -124,7 +124,7 @@ def _f(v, d=2):
 
 def markdown(result: dict) -> str:
     lines = ["# Fair classical baselines: held-out stopping vs the oracle "
-             "(`bench/fair_baselines.py`)", "",
+             "(`experiments/studies/fair_baselines.py`)", "",
              f"Cases {', '.join(result['cases'])} of experiments/suite_cpu.json (64^3, 96^2 "
              f"detector, 25 noisy views); variant {result['machine']['variant']}, "
              f"{result['machine']['cores']} cores (shared: the 1-minute load average at "

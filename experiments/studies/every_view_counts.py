@@ -8,7 +8,7 @@ options, one at a time with every core, under OUT/every_view/<case>/<method>/ (a
 twin is not rerun: nothing lost on a crash), and writes docs/bench/every_view_counts.{json,md}.
 Target (issue 26): the default within 0.1 dB of ``holdout_every=0`` on average.
 
-    .venv/bin/python bench/every_view_counts.py --out results/cpu [--cases shepp,needles] \\
+    .venv/bin/python experiments/studies/every_view_counts.py --out results/cpu [--cases shepp,needles] \\
         [--methods gr,r2] [--variant holdout_until=0.667 [--variant KEY=VALUE ...]]
 
 ``--variant KEY=VALUE`` (repeatable) measures a candidate protocol without making it the
@@ -25,7 +25,7 @@ import os
 import statistics
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TARGET_DB = 0.1
 #: options of the default run that say where and how it ran, not what it computed
 RUN_ONLY = ("out_dir", "progress")
@@ -133,7 +133,7 @@ def markdown(result: dict) -> str:
                f"Table 1's options with `{cand}` added (bench `--variant`)")
     lines = ["# Every view counts: " + (f"the candidate `{cand}`" if cand else
                                         "the default view protocol")
-             + " against `holdout_every=0` (`bench/every_view_counts.py`)", "",
+             + " against `holdout_every=0` (`experiments/studies/every_view_counts.py`)", "",
              f"Variant {result['machine']['variant']}, {result['machine']['cores']} cores, "
              f"one run at a time; default = {default}, twin = the same data "
              "and options with `holdout_every=0` (all 25 views train all run). Code of each "

@@ -6,9 +6,9 @@ against the budget, the plan's estimate of its loop against the loop's wall cloc
 3-D PSNR, i.e. a speed-against-error front of the budget option. Run it on a quiet machine,
 one run at a time.
 
-    .venv/bin/python bench/time_budget.py [--phantom shepp] [--method gr] \
+    .venv/bin/python experiments/studies/time_budget.py [--phantom shepp] [--method gr] \
         [--budgets 60,150,300]
-    .venv/bin/python bench/time_budget.py --phantom shells --n 128 --budgets 1200 \
+    .venv/bin/python experiments/studies/time_budget.py --phantom shells --n 128 --budgets 1200 \
         --name time_budget_128        # the 128^3 target (20 min)
 
 Writes docs/bench/NAME.{json,md} (default time_budget); the data set goes to
@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def main(argv=None) -> int:
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
 
 
 def markdown(r: dict) -> str:
-    lines = [f"# Training to a time budget (`bench/time_budget.py`)", "",
+    lines = [f"# Training to a time budget (`experiments/studies/time_budget.py`)", "",
              f"{r['method']} on {r['case']}; code {r['code']}, {r['cores']} cores; one run "
              "per budget, one at a time (1-minute load average at each start in the JSON).",
              "Loop = the training loop's wall clock (its share of the budget: budget x 0.95 "
