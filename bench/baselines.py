@@ -65,8 +65,8 @@ class _ADJoseph(JosephProjector):
     """The forward loop with Dr.Jit's sum-style reverse-mode hint, to time A^T by AD."""
 
     @dr.syntax
-    def _forward_chunk(self, vol, cos_t, sin_t, n_rays, view0):
-        st = self._setup(cos_t, sin_t, n_rays, view0)
+    def _forward_chunk(self, vol, tables, n_rays, view0):
+        st = self._setup(tables, n_rays, view0)
         i = mi.Int32(st["i0"])
         acc = dr.zeros(mi.Float, n_rays)
         while dr.hint(i <= st["i1"], max_iterations=-1):
@@ -95,7 +95,7 @@ def projector_rates(geo, reps):
     def adjoint_ad():
         xx = mi.Float(x)
         dr.enable_grad(xx)
-        p = ad._forward_chunk(xx, *ad.angle_tables(geo.angles), geo.n_views * ad.n_pix, 0)
+        p = ad._forward_chunk(xx, ad.angle_tables(geo.angles), geo.n_views * ad.n_pix, 0)
         dr.backward(dr.sum(p * y))
         g = dr.grad(xx)
         dr.eval(g)

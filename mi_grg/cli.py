@@ -315,7 +315,7 @@ def cmd_import(args) -> int:
     opts = {k: getattr(args, k) for k in (
         "flats", "darks", "free_ray", "cor", "bin", "train_views", "test_views", "seed",
         "reference", "nVoxel", "sVoxel", "scene", "angles", "angle_sign", "unit", "check",
-        "overwrite", "max_memory")}
+        "overwrite", "max_memory", "geometry", "pixel_size")}
     rec = import_scan(args.source, args.out, **opts)
     cor = rec.get("cor", {})
     print(f"wrote {args.out}: {len(rec.get('views', {}).get('train', [])) or 'all'} train "
@@ -330,8 +330,8 @@ def add_import_parser(sub) -> None:
     """The ``import`` sub-command (real scanner data)."""
     i = sub.add_parser("import", help="real scanner data (TIFF + FIPS text / scene XML, "
                        "NAF pickle) -> data set; see docs/real_data.md")
-    i.add_argument("source", help="FIPS text file, TIFF folder/glob (with --scene) or "
-                   "NAF .pickle")
+    i.add_argument("source", help="FIPS text file, Nikon .xtekct file, TIFF folder/glob "
+                   "(with --scene or --geometry) or NAF .pickle")
     i.add_argument("--out", required=True)
     i.add_argument("--flats", help="glob of flat-field TIFFs (averaged)")
     i.add_argument("--darks", help="glob of dark TIFFs (averaged)")
@@ -348,6 +348,10 @@ def add_import_parser(sub) -> None:
                    "every view sees)")
     i.add_argument("--scene", help="scene XML (ct_scanner) for a plain TIFF stack")
     i.add_argument("--angles", help="with --scene: angles file, degrees, one per line")
+    i.add_argument("--geometry", help="per-view geometry for a TIFF stack: ASTRA vector "
+                   "file (12 columns, one row per view) or RTK geometry .xml")
+    i.add_argument("--pixel-size", type=float, help="with an RTK --geometry: detector "
+                   "pixel pitch (length)")
     i.add_argument("--angle-sign", type=int, default=1, choices=(1, -1))
     i.add_argument("--unit", help="length unit name recorded (default mm; scene unit)")
     i.add_argument("--check", action="store_true", help="write OUT/check.png")

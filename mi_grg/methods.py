@@ -103,7 +103,8 @@ def geometry_info(case: Case) -> dict:
     s = float(case.scene_scale)
     g = case.geometry if s == 1.0 else case.geometry.scaled(1.0 / s)   # as save_case does
     return {**g.to_scanner_dict(), "n_angles": int(g.n_views),
-            "n_test_angles": int(len(case.test_angles)), "scene_scale": s}
+            "n_test_angles": int(len(case.test_angles)), "scene_scale": s,
+            "per_view": bool(g.per_view)}
 
 
 def score(pred: np.ndarray, gt: np.ndarray, data_range: float = 1.0) -> dict:

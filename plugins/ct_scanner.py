@@ -118,9 +118,9 @@ class CTScanner(mi.Sensor):
             "type": "hdrfilm", "width": nu, "height": self.geometry.n_views * nv,
             "rfilter": {"type": "box"}, "pixel_format": "luminance"})
         super().__init__(props)
-        a = self.geometry.angles
-        self._cos = mi.Float(np.cos(a))
-        self._sin = mi.Float(np.sin(a))
+        # one row of 12 numbers per view (circular scans convert exactly): one sensor
+        # frame per view
+        self._tables = self.geometry.view_tables()
         g = self.geometry
         self._centre = [float(x) for x in g.offOrigin]
         self._radius = 0.5 * float(np.linalg.norm(g.sVoxel))
@@ -165,9 +165,7 @@ class CTScanner(mi.Sensor):
         v = mi.Float(row - view * nv) + 0.5
         u = mi.Float(col) + 0.5
         idx = mi.UInt32(view)
-        cos_a = dr.gather(mi.Float, self._cos, idx, active)
-        sin_a = dr.gather(mi.Float, self._sin, idx, active)
-        (ox, oy, oz), (dx, dy, dz), length = g.rays(cos_a, sin_a, v, u)
+        (ox, oy, oz), (dx, dy, dz), length = g.rays_of_views(self._tables, idx, v, u, active)
         o = mi.Point3f(ox, oy, oz)
         d = mi.Vector3f(dx, dy, dz)
         # End behind the detector pixel and behind the volume's bounding sphere, whichever

@@ -447,7 +447,8 @@ def test_parse_scanner_fields_matches_the_xml_field_list():
     assert set(SCANNER_FIELDS) == {
         "mode", "DSD", "DSO", "nDetector", "sDetector", "nVoxel", "sVoxel", "offOrigin",
         "offDetector", "views", "total_angle", "start_angle", "angles", "test_views",
-        "test_angles", "noise", "I0", "electronic_std", "noise_seed", "clip_negative"}
+        "test_angles", "vectors", "test_vectors", "noise", "I0", "electronic_std", "noise_seed",
+        "clip_negative"}
     docs = (Path(__file__).resolve().parents[1] / "docs" / "conventions.md").read_text()
     for name in SCANNER_FIELDS:
         assert f"`{name}`" in docs, f"docs/conventions.md does not describe {name}"

@@ -18,15 +18,21 @@ Steps (Feldkamp, Davis & Kress 1984; Kak & Slaney ch. 3; weights as in TIGRE):
    in the density units of the ground truth.
 
 Assumes equally spaced angles over a full circle (cone) or a half/full circle (parallel);
-short scans would need Parker weights, which are not implemented.
+short scans would need Parker weights, which are not implemented. Offset detectors
+(half-fan) get redundancy weights, per-view scans each view's own frame in the weights and
+the back-projection (``mi_grg.core.fdk_geometry``); ``fdk`` says on stderr where FDK is
+only approximate (``fdk_geometry.caveats``).
 """
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 
 import drjit as dr
 import mitsuba as mi
 
+from mi_grg.core import fdk_geometry
 from mi_grg.core.geometry import Geometry
 from mi_grg.core.joseph import check_angles, check_projections
 
@@ -73,7 +79,9 @@ def filter_projections(proj: np.ndarray, geometry: Geometry, filter: str = "ram-
     dv, du = geo.dDetector
     n_views = proj.shape[0]
     p = proj.astype(np.float64)
-    if geo.mode == "cone":
+    if geo.per_view and geo.mode == "cone":
+        p, tau = _view_weights(p, geo)
+    elif geo.mode == "cone":
         mag = geo.DSO / geo.DSD                # detector -> iso-centre scaling
         u = ((np.arange(nu) + 0.5 - nu / 2) * du + geo.offDetector[1]) * mag
         v = ((np.arange(nv) + 0.5 - nv / 2) * dv + geo.offDetector[0]) * mag
@@ -90,6 +98,21 @@ def filter_projections(proj: np.ndarray, geometry: Geometry, filter: str = "ram-
     return q.astype(np.float32)
 
 
+def _view_weights(p, geo: Geometry):
+    """Cosine weights and ramp spacing [view, 1, 1] of a per-view cone-beam scan, from each
+    view's own distances and principal point (``fdk_geometry.view_fdk_frames``)."""
+    f = fdk_geometry.view_fdk_frames(geo)
+    nv, nu = geo.nDetector
+    vec = f["vectors"]
+    du = np.linalg.norm(vec[:, 6:9], axis=1)[:, None, None]
+    dv = np.linalg.norm(vec[:, 9:12], axis=1)[:, None, None]
+    u = (np.arange(nu) + 0.5 - nu / 2)[None, None, :] * du - f["u0"][:, None, None]
+    v = (np.arange(nv) + 0.5 - nv / 2)[None, :, None] * dv - f["v0"][:, None, None]
+    dsd = f["dsd"][:, None, None]
+    p = p * (dsd / np.sqrt(dsd ** 2 + u ** 2 + v ** 2))
+    return p, du * (f["dso"] / f["dsd"])[:, None, None]
+
+
 def _magnification(s, cone, DSD, DSO):
     """Detector magnification and FDK distance weight (DSO / (DSO - s))^2 (cone); 1, 1
     for parallel beam."""
@@ -97,6 +120,25 @@ def _magnification(s, cone, DSD, DSO):
         return 1.0, 1.0
     r = 1.0 / (DSO - s)
     return DSD * r, dr.square(DSO * r)
+
+
+def _bilinear(q, offset, cu, cv, nu: int, nv: int):
+    """Bilinear sample of the view starting at flat index ``offset`` of ``q`` at continuous
+    pixel indices (cu, cv) (pixel centres at integers; zero outside the detector)."""
+    Float, UInt, Int = mi.Float, mi.UInt32, mi.Int32
+    fu, fv = dr.floor(cu), dr.floor(cv)
+    iu, iv = Int(fu), Int(fv)
+    wu1, wv1 = cu - fu, cv - fv
+    wu0, wv0 = 1.0 - wu1, 1.0 - wv1
+    mu0 = (iu >= 0) & (iu < nu)
+    mu1 = (iu >= -1) & (iu < nu - 1)
+    mv0 = (iv >= 0) & (iv < nv)
+    mv1 = (iv >= -1) & (iv < nv - 1)
+    base = Int(offset) + iv * nu + iu
+    return (wv0 * (wu0 * dr.gather(Float, q, UInt(base), mv0 & mu0)
+                   + wu1 * dr.gather(Float, q, UInt(base + 1), mv0 & mu1))
+            + wv1 * (wu0 * dr.gather(Float, q, UInt(base + nu), mv1 & mu0)
+                     + wu1 * dr.gather(Float, q, UInt(base + nu + 1), mv1 & mu1)))
 
 
 @dr.syntax
@@ -130,20 +172,7 @@ def _backproject_kernel(q, cos_t, sin_t, geo: Geometry, n_views):
         m, wgt = _magnification(s, cone, DSD, DSO)
         cu = dr.fma(t * m, 1.0 / du, cu0)
         cv = dr.fma(-z * m, 1.0 / dv, cv0)     # e_v = -z
-        fu, fv = dr.floor(cu), dr.floor(cv)
-        iu, iv = Int(fu), Int(fv)
-        wu1, wv1 = cu - fu, cv - fv
-        wu0, wv0 = 1.0 - wu1, 1.0 - wv1
-        mu0 = (iu >= 0) & (iu < nu)
-        mu1 = (iu >= -1) & (iu < nu - 1)
-        mv0 = (iv >= 0) & (iv < nv)
-        mv1 = (iv >= -1) & (iv < nv - 1)
-        base = Int(k * n_pix) + iv * nu + iu
-        val = (wv0 * (wu0 * dr.gather(Float, q, UInt(base), mv0 & mu0)
-                      + wu1 * dr.gather(Float, q, UInt(base + 1), mv0 & mu1))
-               + wv1 * (wu0 * dr.gather(Float, q, UInt(base + nu), mv1 & mu0)
-                        + wu1 * dr.gather(Float, q, UInt(base + nu + 1), mv1 & mu1)))
-        acc += wgt * val
+        acc += wgt * _bilinear(q, k * n_pix, cu, cv, nu, nv)
         k += 1
     return acc
 
@@ -152,6 +181,14 @@ def fdk_backproject(q: np.ndarray, geometry: Geometry, angles=None) -> "mi.Float
     """Distance-weighted voxel-driven back-projection of filtered projections ``q``
     [view, v, u] -> flat mi.Float volume [x, y, z] (no further scaling)."""
     a = check_angles(angles, geometry)
+    if geometry.per_view:
+        geo = geometry.with_angles(a)
+        tables = [mi.Float(c.astype(np.float32)) for c in _bp_tables(geo)]
+        out = _backproject_vectors_kernel(
+            mi.Float(np.ascontiguousarray(q, np.float32).reshape(-1)), tables, geo,
+            dr.opaque(mi.UInt32, a.size))
+        dr.eval(out)
+        return out
     cos_t = mi.Float(np.cos(a).astype(np.float32))
     sin_t = mi.Float(np.sin(a).astype(np.float32))
     out = _backproject_kernel(mi.Float(np.ascontiguousarray(q, np.float32).reshape(-1)),
@@ -160,12 +197,67 @@ def fdk_backproject(q: np.ndarray, geometry: Geometry, angles=None) -> "mi.Float
     return out
 
 
+def _bp_tables(geo: Geometry) -> list:
+    """Per-view back-projection constants [view] (float64): source (parallel: 0), unit
+    normal n (source towards detector), detector centre, u / |u|^2, v / |v|^2, DSO_i."""
+    f = fdk_geometry.view_fdk_frames(geo)
+    vec = f["vectors"]
+    src = vec[:, 0:3] if geo.mode == "cone" else np.zeros((len(vec), 3))
+    iu = vec[:, 6:9] / np.sum(vec[:, 6:9] ** 2, 1, keepdims=True)
+    iv = vec[:, 9:12] / np.sum(vec[:, 9:12] ** 2, 1, keepdims=True)
+    dso = f["dso"] if geo.mode == "cone" else np.ones(len(vec))
+    cols = [src, f["n"], vec[:, 3:6], iu, iv]
+    return [c[:, k] for c in cols for k in range(3)] + [dso]
+
+
+@dr.syntax
+def _backproject_vectors_kernel(q, tables, geo: Geometry, n_views):
+    """``_backproject_kernel`` for per-view frames: each voxel is projected from the
+    view's source onto its own detector plane (parallel beam: along n), weighted by
+    (DSO_i / depth)^2 (cone)."""
+    Float, UInt, Int = mi.Float, mi.UInt32, mi.Int32
+    nx, ny, nz = geo.nVoxel
+    nv, nu = geo.nDetector
+    ax = [np.float32(a[0]) for a in geo.voxel_axes()]
+    dvx, dvy, dvz = geo.dVoxel
+    idx = dr.arange(UInt, nx * ny * nz)
+    ix, iy, iz = idx // (ny * nz), (idx // nz) % ny, idx % nz
+    x = [dr.fma(Float(ix), dvx, ax[0]), dr.fma(Float(iy), dvy, ax[1]),
+         dr.fma(Float(iz), dvz, ax[2])]
+    cone = geo.mode == "cone"
+    acc = dr.zeros(Float, nx * ny * nz)
+    k = UInt(0)
+    n_pix = nv * nu
+    while k < n_views:
+        t = [dr.gather(Float, c, k) for c in tables]
+        rel = [x[i] - t[i] for i in range(3)]
+        depth = rel[0] * t[3] + rel[1] * t[4] + rel[2] * t[5]
+        if cone:
+            # hit = s + m (x - s), m = ((d - s) . n) / depth
+            m = ((t[6] - t[0]) * t[3] + (t[7] - t[1]) * t[4] + (t[8] - t[2]) * t[5]) / depth
+            hit = [t[i] + m * rel[i] for i in range(3)]
+            wgt = dr.square(t[15] / depth)
+        else:
+            off = (t[6] - x[0]) * t[3] + (t[7] - x[1]) * t[4] + (t[8] - x[2]) * t[5]
+            hit = [x[i] + off * t[3 + i] for i in range(3)]
+            wgt = 1.0
+        h = [hit[i] - t[6 + i] for i in range(3)]
+        cu = h[0] * t[9] + h[1] * t[10] + h[2] * t[11] + (nu / 2 - 0.5)
+        cv = h[0] * t[12] + h[1] * t[13] + h[2] * t[14] + (nv / 2 - 0.5)
+        acc += wgt * _bilinear(q, k * n_pix, cu, cv, nu, nv)
+        k += 1
+    return acc
+
+
 def fdk_dr(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> "mi.TensorXf":
-    """FDK (cone) / FBP (parallel) as ``mi.TensorXf`` [x, y, z] (density, 1/length)."""
+    """FDK (cone) / FBP (parallel) as ``mi.TensorXf`` [x, y, z] (density, 1/length);
+    offset detectors get redundancy weights (``fdk_geometry.pad_offset_detector``)."""
     a = check_angles(angles, geometry)
     p = check_projections(proj, geometry, a)
-    q = filter_projections(p, geometry, filter)
-    return mi.TensorXf(fdk_backproject(q, geometry, a), shape=tuple(geometry.nVoxel))
+    geo = geometry if angles is None else geometry.with_angles(a)
+    p, geo = fdk_geometry.pad_offset_detector(p, geo)
+    q = filter_projections(p, geo, filter)
+    return mi.TensorXf(fdk_backproject(q, geo), shape=tuple(geometry.nVoxel))
 
 
 def fdk(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> np.ndarray:
@@ -179,4 +271,10 @@ def fdk(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> np.nd
     Returns:
         float32 [x, y, z] densities in the units of the ground truth.
     """
+    geo = geometry if angles is None else geometry.with_angles(check_angles(angles, geometry))
+    reasons = fdk_geometry.caveats(geo)
+    if reasons:
+        print(f"fdk: not meaningful on this scan, the result is approximate: "
+              f"{'; '.join(reasons)} (iterative methods, or init=pdhg for gr / r2, do not "
+              "rely on FDK)", file=sys.stderr)
     return np.array(fdk_dr(proj, geometry, angles, filter).numpy(), copy=True)

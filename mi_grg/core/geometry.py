@@ -18,16 +18,29 @@ drawn in ``docs/conventions.md``):
 
 All lengths share one unit (that of the data set; R2-Gaussian rescales them on load by
 ``2 / max(sVoxel)``, see ``Geometry.scaled``).
+
+Per-view scans (``vectors``): each view may instead carry its own source, detector centre
+and detector steps (ASTRA's ``cone_vec`` / ``parallel3d_vec`` rows, ``view_vectors``);
+``angles`` then stay the nominal angles, and a view's row is found by its angle, so that a
+subset of views (``with_angles``) keeps its vectors. The rays of both forms come from
+``view_vectors.rays``; a circular scan converts to vectors exactly (``view_vectors()``).
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from mi_grg.core import view_vectors as vv
+
 MODES = ("cone", "parallel")
+
+# Validated per-view rows (by id, while alive) and what they were validated against
+_CHECKED = weakref.WeakValueDictionary()
+_CHECKED_KEYS: dict = {}
 
 
 class GeometryError(ValueError):
@@ -66,7 +79,11 @@ class Geometry:
         sVoxel:      volume size [x, y, z] (whole volume, not one voxel).
         offOrigin:   volume centre offset [x, y, z].
         offDetector: detector centre offset [v, u] along (e_v, e_u).
-        angles:      projection angles [view], radians.
+        angles:      projection angles [view], radians (nominal ones for a per-view scan).
+        vectors:     None (circular scan) or per-view rows [m, 12] (``view_vectors``
+                     order); row r belongs to the view whose angle is ``vector_angles[r]``.
+        vector_angles: the nominal angle of each row of ``vectors`` (default: ``angles``).
+                     Every angle must have a row; rows of equal angles must be equal.
     """
 
     mode: str
@@ -79,6 +96,8 @@ class Geometry:
     angles: np.ndarray
     offOrigin: tuple = (0.0, 0.0, 0.0)
     offDetector: tuple = (0.0, 0.0)
+    vectors: np.ndarray | None = None
+    vector_angles: np.ndarray | None = None
 
     def __post_init__(self):
         s = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -120,6 +139,52 @@ class Geometry:
                 raise GeometryError(
                     f"DSO ({self.DSO}) must exceed the volume's bounding radius ({r:.4g}): the "
                     "source would sit inside the volume")
+        self._check_vectors(s)
+
+    def _check_vectors(self, s):
+        """Validate ``vectors`` and find each view's row (``_rows``)."""
+        if self.vectors is None:
+            if self.vector_angles is not None:
+                raise GeometryError("vector_angles given without vectors")
+            s("_rows", None)
+            return
+        vec = self.vectors
+        key = (id(vec), self.mode, self.nDetector, tuple(self.bbox().ravel()))
+        if _CHECKED.get(key[0]) is not vec or _CHECKED_KEYS.get(key[0]) != key:
+            # a copy of a validated geometry (with_angles, replace) keeps its rows unchecked
+            try:
+                vec = vv.check_vectors(self.vectors, self.mode, self.nDetector, self.bbox())
+            except vv.VectorError as e:
+                raise GeometryError(str(e)) from None
+            key = (id(vec),) + key[1:]
+            _CHECKED[id(vec)] = vec
+            _CHECKED_KEYS[id(vec)] = key
+            weakref.finalize(vec, _CHECKED_KEYS.pop, id(vec), None)
+        va = self.angles if self.vector_angles is None else np.array(
+            self.vector_angles, np.float64).reshape(-1)
+        if va.shape != (vec.shape[0],):
+            raise GeometryError(f"vector_angles has {va.size} entries for {vec.shape[0]} "
+                                "vector rows")
+        va = np.array(va, np.float64)
+        va.setflags(write=False)
+        order = np.argsort(va, kind="stable")
+        sa = va[order]
+        dup = np.nonzero(sa[1:] == sa[:-1])[0]
+        for k in dup:
+            if not np.array_equal(vec[order[k]], vec[order[k + 1]]):
+                raise GeometryError(f"view {order[k + 1]}: its angle {sa[k]!r} is also that of "
+                                    f"view {order[k]} with another vector (angles must tell "
+                                    "per-view vectors apart)")
+        pos = np.minimum(np.searchsorted(sa, self.angles), sa.size - 1)
+        bad = np.nonzero(sa[pos] != self.angles)[0]
+        if bad.size:
+            raise GeometryError(f"view {bad[0]}: angle {self.angles[bad[0]]!r} has no per-view "
+                                "vector")
+        rows = order[pos]
+        rows.setflags(write=False)
+        s("vectors", vec)
+        s("vector_angles", va)
+        s("_rows", rows)
 
     # ---------------------------------------------------------------- derived values
     @property
@@ -146,12 +211,45 @@ class Geometry:
         return dataclasses.replace(self, **changes)
 
     def with_angles(self, angles) -> "Geometry":
+        """The same scan seen at ``angles``; a per-view scan keeps each angle's vector."""
         return self.replace(angles=angles)
+
+    @property
+    def per_view(self) -> bool:
+        """True where views carry their own vectors (``vectors``)."""
+        return self.vectors is not None
+
+    def view_vectors(self, angles=None) -> np.ndarray:
+        """Float64 [view, 12] rows (``mi_grg.core.view_vectors`` order) of ``angles``
+        (default: the geometry's); a circular scan converts exactly."""
+        if angles is not None:
+            return self.with_angles(angles).view_vectors()
+        if self.per_view:
+            return np.array(self.vectors[self._rows])
+        a = self.angles
+        comps = vv.circular_vectors(np.cos(a), np.sin(a), self.DSD, self.DSO, self.dDetector,
+                                    self.offDetector, self.mode)
+        return np.stack(np.broadcast_arrays(*comps), -1)
+
+    def as_vectors(self) -> "Geometry":
+        """The same scan as a per-view geometry (its rows: ``view_vectors()``)."""
+        return self.replace(vectors=self.view_vectors(), vector_angles=None)
+
+    def circular(self) -> "Geometry":
+        """The nominal circular scan (per-view vectors dropped)."""
+        return self.replace(vectors=None, vector_angles=None)
 
     def scaled(self, factor: float) -> "Geometry":
         """All lengths multiplied by ``factor`` (R2-Gaussian's scene rescaling)."""
         f = float(factor)
+        vec = None
+        if self.per_view:
+            vec = np.array(self.vectors)
+            vec[:, 3:] *= f
+            if self.mode == "cone":
+                vec[:, :3] *= f
         return self.replace(
+            vectors=vec,
             DSD=self.DSD * f, DSO=self.DSO * f,
             sDetector=tuple(x * f for x in self.sDetector),
             sVoxel=tuple(x * f for x in self.sVoxel),
@@ -207,21 +305,26 @@ class Geometry:
     # ---------------------------------------------------------------- rays
     def detector_frame(self, angles=None) -> dict:
         """Per-view frame as float64 arrays [view, 3]: ``source`` (cone beam; for parallel
-        beam the point at distance DSO before the origin), ``center`` (detector centre,
-        offsets included), ``e_u``, ``e_v`` (unit detector axes) and ``normal`` (unit,
-        from detector towards source)."""
-        a = self.angles if angles is None else np.asarray(angles, np.float64).reshape(-1)
-        c, s, z = np.cos(a), np.sin(a), np.zeros_like(a)
-        normal = np.stack([c, s, z], -1)
-        e_u = np.stack([-s, c, z], -1)
-        e_v = np.stack([z, z, -np.ones_like(a)], -1)
-        center = (-(self.DSD - self.DSO) * normal + self.offDetector[0] * e_v
-                  + self.offDetector[1] * e_u)
-        return {"source": self.DSO * normal, "center": center, "e_u": e_u, "e_v": e_v,
-                "normal": normal}
+        beam the point at distance DSD before the detector centre), ``center`` (detector
+        centre, offsets included), ``e_u``, ``e_v`` (unit detector axes) and ``normal``
+        (unit, from detector towards source)."""
+        vec = self.view_vectors(angles)
+        e_u = vec[:, 6:9] / np.linalg.norm(vec[:, 6:9], axis=1, keepdims=True)
+        e_v = vec[:, 9:12] / np.linalg.norm(vec[:, 9:12], axis=1, keepdims=True)
+        normal = np.cross(e_v, e_u)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        center = vec[:, 3:6]
+        if self.mode == "cone":
+            source = vec[:, 0:3]
+        else:
+            ray = vec[:, 0:3] / np.linalg.norm(vec[:, 0:3], axis=1, keepdims=True)
+            source = center - self.DSD * ray
+        normal *= np.sign(np.sum((source - center) * normal, 1))[:, None]
+        return {"source": source, "center": center, "e_u": e_u, "e_v": e_v, "normal": normal}
 
     def rays(self, cos_a, sin_a, v, u):
-        """Rays through detector positions; the single place of the ray formula.
+        """Rays of the circular scan through detector positions (``view_vectors.rays`` of
+        the circular views: the one ray formula).
 
         Works on NumPy arrays (float64 references) and on Dr.Jit arrays (kernels) alike.
 
@@ -234,37 +337,40 @@ class Geometry:
             tuples; ``length`` is the distance from origin to the detector pixel. The origin
             is the source (cone) or the point at distance DSD before the detector (parallel).
         """
-        dv, du = self.dDetector
-        nv, nu = self.nDetector
-        su = (u - 0.5 * nu) * du + self.offDetector[1]   # along e_u = (-sin, cos, 0)
-        sv = (v - 0.5 * nv) * dv + self.offDetector[0]   # along e_v = (0, 0, -1)
-        back = self.DSD - self.DSO
-        px = -back * cos_a - su * sin_a
-        py = -back * sin_a + su * cos_a
-        pz = -sv
-        if self.mode == "cone":
-            ox, oy, oz = self.DSO * cos_a, self.DSO * sin_a, 0.0 * cos_a
-            dx, dy, dz = px - ox, py - oy, pz - oz
-            length = _sqrt(dx * dx + dy * dy + dz * dz)
-            inv = 1.0 / length
-            return (ox, oy, oz), (dx * inv, dy * inv, dz * inv), length
-        ox, oy, oz = px + self.DSD * cos_a, py + self.DSD * sin_a, pz
-        return (ox, oy, oz), (-cos_a, -sin_a, 0.0 * cos_a), self.DSD + 0.0 * cos_a
+        vec = vv.circular_vectors(cos_a, sin_a, self.DSD, self.DSO, self.dDetector,
+                                  self.offDetector, self.mode)
+        return self.vector_rays(vec, v, u)
+
+    def vector_rays(self, vec, v, u):
+        """``view_vectors.rays`` of this scan's detector for the 12 components ``vec``
+        (scalars or per-ray arrays, NumPy or Dr.Jit); returns (origin, direction, length)."""
+        return vv.rays(vec, v, u, self.nDetector, self.mode, self.DSD)
+
+    def view_tables(self, angles=None):
+        """The views' 12 components as float32 Dr.Jit arrays [view] (kernels gather them
+        per ray, ``rays_of_views``)."""
+        import mitsuba as mi
+        vec = self.view_vectors(angles).astype(np.float32)
+        return tuple(mi.Float(np.ascontiguousarray(vec[:, k])) for k in range(12))
+
+    def rays_of_views(self, tables, view, v, u, active=True):
+        """Dr.Jit rays of detector positions (v, u) of views ``view`` (UInt32 per ray) from
+        ``view_tables``; returns (origin, direction, length)."""
+        import drjit as dr
+        import mitsuba as mi
+        vec = [dr.gather(mi.Float, t, view, active) for t in tables]
+        return self.vector_rays(vec, v, u)
 
     def pixel_rays_numpy(self, angles=None):
         """Float64 rays of every pixel centre: origins and unit directions [view, v, u, 3]."""
-        a = self.angles if angles is None else np.asarray(angles, np.float64).reshape(-1)
+        vec = self.view_vectors(angles)
         nv, nu = self.nDetector
-        A, V, U = np.meshgrid(a, np.arange(nv) + 0.5, np.arange(nu) + 0.5, indexing="ij")
-        o, d, _ = self.rays(np.cos(A), np.sin(A), V, U)
-        return (np.stack(np.broadcast_arrays(*o), -1), np.stack(np.broadcast_arrays(*d), -1))
-
-
-def _sqrt(x):
-    if isinstance(x, np.ndarray) or np.isscalar(x):
-        return np.sqrt(x)
-    import drjit as dr
-    return dr.sqrt(x)
+        V, U = np.meshgrid(np.arange(nv) + 0.5, np.arange(nu) + 0.5, indexing="ij")
+        comps = [vec[:, k, None, None] for k in range(12)]
+        o, d, _ = self.vector_rays(comps, V[None], U[None])
+        shape = (vec.shape[0], nv, nu)
+        return (np.stack([np.broadcast_to(x, shape) for x in o], -1),
+                np.stack([np.broadcast_to(x, shape) for x in d], -1))
 
 
 def circular_angles(n_views: int, total_angle: float = 2 * np.pi, start_angle: float = 0.0):

@@ -101,12 +101,12 @@ class JosephProjector:
         for start in range(0, n_views, per):
             yield start, min(n_views, start + per)
 
-    @staticmethod
-    def angle_tables(angles):
-        a = np.asarray(angles, np.float64).reshape(-1)
-        return mi.Float(np.cos(a).astype(np.float32)), mi.Float(np.sin(a).astype(np.float32))
+    def angle_tables(self, angles):
+        """The views' 12 vector components (float32 tables, ``Geometry.view_tables``): a
+        circular scan and the same scan given as vectors run the same arithmetic."""
+        return self.geo.view_tables(np.asarray(angles, np.float64).reshape(-1))
 
-    def _setup(self, cos_t, sin_t, n_rays, view0):
+    def _setup(self, tables, n_rays, view0):
         """Per-ray Joseph set-up for rays view0 * n_pix + [0, n_rays).
 
         Returns a dict: q0 along the dominant axis k and the two others (b, c), the
@@ -123,9 +123,8 @@ class JosephProjector:
         view = r // self.n_pix + dr.opaque(UInt, view0)
         pix = r % self.n_pix
         iv, iu = pix // nu, pix % nu
-        ca = dr.gather(Float, cos_t, view)
-        sa = dr.gather(Float, sin_t, view)
-        (ox, oy, oz), (dx, dy, dz), _ = geo.rays(ca, sa, Float(iv) + 0.5, Float(iu) + 0.5)
+        (ox, oy, oz), (dx, dy, dz), _ = geo.rays_of_views(tables, view, Float(iv) + 0.5,
+                                                          Float(iu) + 0.5)
 
         # continuous voxel-index space, voxel centres at integers
         q = [(ox - lo[0]) / dvx - 0.5, (oy - lo[1]) / dvy - 0.5, (oz - lo[2]) / dvz - 0.5]
@@ -200,8 +199,8 @@ class JosephProjector:
         return idx, wts, msk
 
     @dr.syntax
-    def _forward_chunk(self, vol, cos_t, sin_t, n_rays, view0):
-        st = self._setup(cos_t, sin_t, n_rays, view0)
+    def _forward_chunk(self, vol, tables, n_rays, view0):
+        st = self._setup(tables, n_rays, view0)
         i = mi.Int32(st["i0"])
         acc = dr.zeros(mi.Float, n_rays)
         while i <= st["i1"]:
@@ -214,8 +213,8 @@ class JosephProjector:
         return acc
 
     @dr.syntax
-    def _adjoint_chunk(self, out, proj, cos_t, sin_t, n_rays, view0, mode):
-        st = self._setup(cos_t, sin_t, n_rays, view0)
+    def _adjoint_chunk(self, out, proj, tables, n_rays, view0, mode):
+        st = self._setup(tables, n_rays, view0)
         y = dr.gather(mi.Float, proj, dr.arange(mi.UInt32, n_rays))
         i = mi.Int32(st["i0"])
         live = (y != 0) & (st["i0"] <= st["i1"])
@@ -237,17 +236,17 @@ class JosephProjector:
     def forward(self, vol, angles) -> "mi.Float":
         """A x: flat volume -> flat projections [view, v, u] for ``angles`` (radians)."""
         angles = np.asarray(angles, np.float64).reshape(-1)
-        cos_t, sin_t = self.angle_tables(angles)
+        tables = self.angle_tables(angles)
         n_views = angles.size
         chunks = list(self._chunks(n_views))
         if len(chunks) == 1:
-            out = self._forward_chunk(vol, cos_t, sin_t, n_views * self.n_pix, 0)
+            out = self._forward_chunk(vol, tables, n_views * self.n_pix, 0)
             dr.eval(out)
             return out
         out = dr.zeros(mi.Float, n_views * self.n_pix)
         for a, b in chunks:
             n = (b - a) * self.n_pix
-            val = self._forward_chunk(vol, cos_t, sin_t, n, a)
+            val = self._forward_chunk(vol, tables, n, a)
             dr.scatter(out, val, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, a * self.n_pix))
             dr.eval(out)
         return out
@@ -255,14 +254,14 @@ class JosephProjector:
     def adjoint(self, proj, angles) -> "mi.Float":
         """A^T y: flat projections [view, v, u] for ``angles`` -> flat volume [x, y, z]."""
         angles = np.asarray(angles, np.float64).reshape(-1)
-        cos_t, sin_t = self.angle_tables(angles)
+        tables = self.angle_tables(angles)
         out = dr.zeros(mi.Float, self.n_vox)
         mode = self._reduce_mode()
         for a, b in self._chunks(angles.size):
             n = (b - a) * self.n_pix
             part = proj if (a == 0 and b == angles.size) else dr.gather(
                 mi.Float, proj, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, a * self.n_pix))
-            self._adjoint_chunk(out, part, cos_t, sin_t, n, a, mode)
+            self._adjoint_chunk(out, part, tables, n, a, mode)
             dr.eval(out)
         return out
 

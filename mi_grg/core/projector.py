@@ -52,7 +52,10 @@ packet store, adds its gradient sums to its record with one packet store and rea
 record with one packet load (a SIMD scatter-add resolves lane conflicts one lane at a time
 on the CPU); internal images then pad their rows to a whole number of packets.
 
-Where it lives: ``view_frames`` (detector frames from ``Geometry.rays``),
+Per-view scans: views whose detector values (distance, offsets, pixel steps) differ are
+projected in runs of equal values (``ViewFrames.groups``); a circular scan is one run.
+
+Where it lives: ``view_frames`` (detector frames from the ray formula),
 ``projector_inputs`` (checks, ``ProjectorError``), ``projector_records`` (the closed form
 per record and its footprint), ``projector_kernels`` (the pixel loops, per-record sums),
 ``projector_chunks`` (chunks, classification, row batches), ``lanes`` (packets and lane
@@ -334,11 +337,17 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
         density_scale = mi.Float(density_scale)
     validate(gaussians, n, density_scale, means2d, nviews)
     fr = view_frames(geometry)
-    setup = _ProjectionSetup(geometry, ViewFrameArrays(fr),
-                             DetectorConstants(fr, geometry, extent), n, nviews)
     g = gaussians
-    flat = dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
-                     density_scale, means2d, setup)
+    parts = []
+    for v0, v1 in fr.groups():   # one run for a circular scan
+        sub = fr if (v0, v1) == (0, nviews) else fr.select(slice(v0, v1))
+        setup = _ProjectionSetup(geometry, ViewFrameArrays(sub),
+                                 DetectorConstants(sub, geometry, extent), n, v1 - v0)
+        md = means2d if (means2d is None or sub is fr) else dr.gather(
+            mi.Vector2f, means2d, dr.arange(mi.UInt32, v0 * n, v1 * n))
+        parts.append(dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
+                               density_scale, md, setup))
+    flat = parts[0] if len(parts) == 1 else dr.concat(parts)
     return mi.TensorXf(flat, shape=(nviews, nv, nu))
 
 

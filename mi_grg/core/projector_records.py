@@ -28,9 +28,11 @@ SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 class DetectorConstants:
-    """Geometry scalars as opaque Dr.Jit values (one compiled kernel for all geometries)."""
+    """Geometry scalars as opaque Dr.Jit values (one compiled kernel for all geometries);
+    the detector values are those of view ``view`` of ``fr`` (all views of one launch
+    share them, ``ViewFrames.groups``)."""
 
-    def __init__(self, fr: ViewFrames, geometry: Geometry, extent: float):
+    def __init__(self, fr: ViewFrames, geometry: Geometry, extent: float, view: int = 0):
         F = mi.Float
         nv, nu = geometry.nDetector
         self.cone = fr.cone
@@ -40,10 +42,11 @@ class DetectorConstants:
         stride = -(-nu // lanes.PACKET) * lanes.PACKET if lanes.use_packets() else nu
         self.stride_py = stride
         self.stride = dr.opaque(mi.Int32, stride)
-        self.h = dr.opaque(F, fr.h)
-        self.h2 = dr.opaque(F, fr.h * fr.h)
-        self.a_u, self.a_v = dr.opaque(F, fr.a_u), dr.opaque(F, fr.a_v)
-        self.du, self.dv = dr.opaque(F, fr.du), dr.opaque(F, fr.dv)
+        h, a_u, a_v, du, dv = fr.detector_values(view)
+        self.h = dr.opaque(F, h)
+        self.h2 = dr.opaque(F, h * h)
+        self.a_u, self.a_v = dr.opaque(F, a_u), dr.opaque(F, a_v)
+        self.du, self.dv = dr.opaque(F, du), dr.opaque(F, dv)
         self.E = dr.opaque(F, extent)
         self.E2 = dr.opaque(F, extent * extent)
         self.Eb2 = dr.opaque(F, (extent * (1 + BOUND_PAD)) ** 2)

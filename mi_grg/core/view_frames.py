@@ -1,5 +1,5 @@
-"""Per-view detector frames, read off ``Geometry.rays`` so that the projector follows mi_grg's
-one ray formula."""
+"""Per-view detector frames, read off the one ray formula (``Geometry.vector_rays`` of each
+view's vectors) so that the projector follows it."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -19,7 +19,9 @@ class ViewFrames:
     Pixel (v, u) (continuous, centre of pixel (i, j) at (i + 0.5, j + 0.5)) lies at
     ``origin + h e_n + (a_u + u du) e_u + (a_v + v dv) e_v`` where ``origin`` is the source
     (cone) or the corner pixel's point (parallel, a_u = a_v = 0); parallel rays run along
-    e_n. Arrays are [view, 3]; scalars are shared by all views."""
+    e_n. Arrays are [view, 3]; the detector values h, a_u, a_v, du, dv are floats shared by
+    all views (``shared``: every circular scan) or float64 arrays [view] (a per-view scan
+    whose views differ)."""
     cone: bool
     e_n: np.ndarray
     e_u: np.ndarray
@@ -31,17 +33,47 @@ class ViewFrames:
     du: float
     dv: float
 
+    @property
+    def shared(self) -> bool:
+        return isinstance(self.h, float)
+
+    def detector_values(self, view: int) -> tuple:
+        """(h, a_u, a_v, du, dv) of one view."""
+        if self.shared:
+            return (self.h, self.a_u, self.a_v, self.du, self.dv)
+        return tuple(float(x[view]) for x in (self.h, self.a_u, self.a_v, self.du, self.dv))
+
+    def select(self, views) -> "ViewFrames":
+        """The frames of the views ``views`` (a slice or index array)."""
+        pick = lambda x: x if isinstance(x, float) else np.asarray(x)[views]  # noqa: E731
+        return ViewFrames(self.cone, self.e_n[views], self.e_u[views], self.e_v[views],
+                          self.origin[views], *(pick(x) for x in (self.h, self.a_u, self.a_v,
+                                                                  self.du, self.dv)))
+
+    def groups(self) -> list:
+        """Runs [(start, stop)] of consecutive views with equal detector values (one run
+        for a shared frame): the projector launches one set of kernels per run."""
+        if self.shared:
+            return [(0, self.e_n.shape[0])]
+        vals = np.stack([self.h, self.a_u, self.a_v, self.du, self.dv], 1)
+        cut = np.nonzero(np.any(vals[1:] != vals[:-1], axis=1))[0] + 1
+        edges = [0, *cut.tolist(), vals.shape[0]]
+        return list(zip(edges[:-1], edges[1:]))
+
 
 def view_frames(geometry: Geometry, angles=None) -> ViewFrames:
-    """The detector frame of every view, read off ``geometry.rays`` (float64), so that the
+    """The detector frame of every view, read off the ray formula (float64), so that the
     projector follows the one ray formula of mi_grg. Raises if the rays are not those of
-    a planar detector with orthogonal axes and view-independent offsets."""
-    a = geometry.angles if angles is None else np.asarray(angles, np.float64).reshape(-1)
-    c, s = np.cos(a), np.sin(a)
+    a planar detector with orthogonal axes. Detector values equal to 1e-9 in every view
+    are shared (floats)."""
+    vec = geometry.view_vectors(angles)
+    comps = [vec[:, k] for k in range(12)]
+    a = vec[:, 0]
     nv, nu = geometry.nDetector
 
     def at(v, u):
-        o, d, length = geometry.rays(c, s, np.full_like(a, float(v)), np.full_like(a, float(u)))
+        o, d, length = geometry.vector_rays(comps, np.full_like(a, float(v)),
+                                            np.full_like(a, float(u)))
         o = np.stack(np.broadcast_arrays(*o), -1)
         d = np.stack(np.broadcast_arrays(*d), -1)
         return o, d, o + np.asarray(length)[..., None] * d
@@ -57,8 +89,10 @@ def view_frames(geometry: Geometry, angles=None) -> ViewFrames:
     if not np.allclose(qff, q00 + nu * E_u + nv * E_v, rtol=0, atol=1e-9 * scale):
         raise ProjectorError("geometry.rays is not affine in the pixel coordinates "
                              "(planar detector expected)")
-    if np.abs(np.sum(e_u * e_v, 1)).max() > 1e-9:
-        raise ProjectorError("detector axes e_u, e_v are not orthogonal")
+    skew = np.abs(np.sum(e_u * e_v, 1))
+    if skew.max() > 1e-9:
+        raise ProjectorError(f"view {int(np.argmax(skew))}: detector axes u, v are not "
+                             "orthogonal (the Gaussian projector needs a rectangular pixel grid)")
     cone = geometry.mode == "cone"
     if cone:
         if not (np.allclose(o00, o01, atol=1e-12 * scale) and np.allclose(o00, o10, atol=1e-12 * scale)):
@@ -71,14 +105,15 @@ def view_frames(geometry: Geometry, angles=None) -> ViewFrames:
         a_u, a_v = np.sum(rel * e_u, 1), np.sum(rel * e_v, 1)
     else:
         e_n = d00
-        if np.abs(np.sum(e_n * e_u, 1)).max() > 1e-9 or np.abs(np.sum(e_n * e_v, 1)).max() > 1e-9:
-            raise ProjectorError("parallel-beam direction is not normal to the detector")
+        tilt = np.abs(np.sum(e_n * e_u, 1)) + np.abs(np.sum(e_n * e_v, 1))
+        if tilt.max() > 1e-9:
+            raise ProjectorError(f"view {int(np.argmax(tilt))}: parallel-beam direction is not "
+                                 "normal to the detector")
         origin = q00
         h = np.full_like(a, float(geometry.DSD))
         a_u = a_v = np.zeros_like(a)
-    for name, arr in (("h", h), ("a_u", a_u), ("a_v", a_v), ("du", du), ("dv", dv)):
-        if np.ptp(arr) > 1e-9 * (np.abs(arr).max() + scale):
-            raise ProjectorError(f"detector frame value {name} differs between views")
-    return ViewFrames(cone, e_n, e_u, e_v, origin, float(h[0]), float(a_u[0]), float(a_v[0]),
-                      float(du[0]), float(dv[0]))
+    vals = (h, a_u, a_v, du, dv)
+    if all(np.ptp(x) <= 1e-9 * (np.abs(x).max() + scale) for x in vals):
+        return ViewFrames(cone, e_n, e_u, e_v, origin, *(float(x[0]) for x in vals))
+    return ViewFrames(cone, e_n, e_u, e_v, origin, *(np.asarray(x, np.float64) for x in vals))
 

@@ -9,7 +9,8 @@ Layout of a case directory ``DIR`` (R2-Gaussian's ``readBlenderInfo`` / ``genera
                           "vol": "vol_gt.npy",                    # optional here
                           "bbox": [[xmin, ymin, zmin], [xmax, ymax, zmax]],
                           "proj_train": [{"file_path": "proj_train/proj_train_0000.npy",
-                                          "angle": <radians>}, ...],
+                                          "angle": <radians>,
+                                          "vector": [12 numbers]}, ...],  # optional
                           "proj_test": [...],
                           "mi_grg": {...}}                        # our Case.info; R2 ignores it
     DIR/proj_*/...npy    float32 [v, u] line integrals (or .exr, single channel "Y")
@@ -21,6 +22,11 @@ Units: files hold the data set's own units. ``load_case(rescale=True)`` multipli
 length AND every projection by ``scene_scale = 2 / max(sVoxel)`` (R2-Gaussian does the same
 so that the volume fills [-1, 1]^3; line integrals scale with length because densities are
 left unchanged). ``save_case`` undoes that, so load -> save reproduces the files.
+
+Per-view scans: every entry (train and test) may carry "vector", the view's 12 numbers in
+ASTRA's cone_vec order (source, detector centre, column step u, row step v; parallel3d_vec
+for parallel beam; ``mi_grg.core.view_vectors``) beside its nominal "angle"; all entries
+or none.
 """
 from __future__ import annotations
 
@@ -244,6 +250,42 @@ def _read_meta(meta_path: Path) -> tuple:
     return meta, probe.nDetector
 
 
+def _entry_vectors(meta: dict):
+    """(rows [m, 12] float64, entry names) of proj_train then proj_test entries carrying
+    "vector", or None where none does; a mix is an error."""
+    rows, names, plain = [], [], None
+    for key in ("proj_train", "proj_test"):
+        entries = meta.get(key) or []
+        for i, e in enumerate(entries):
+            name = f"{key}[{i}]"
+            if isinstance(e, dict) and "vector" in e:
+                rows.append(e["vector"])
+                names.append(name)
+            elif plain is None:
+                plain = name
+    if not rows:
+        return None
+    if plain is not None:
+        raise DatasetError(f"{META_NAME}: {names[0]} has a \"vector\" but {plain} has none "
+                           "(per-view vectors go on every entry or on none)")
+    return rows, names
+
+
+def _with_entry_vectors(geo: Geometry, meta: dict, test_angles) -> Geometry:
+    """``geo`` with the entries' per-view vectors (train and test views), if any."""
+    from mi_grg.core import view_vectors as vv
+    found = _entry_vectors(meta)
+    if found is None:
+        return geo
+    rows, names = found
+    try:
+        vec = vv.check_vectors(rows, geo.mode, geo.nDetector, geo.bbox(), names)
+    except vv.VectorError as e:
+        raise DatasetError(f"{META_NAME}: {e}") from None
+    all_angles = np.concatenate([geo.angles, np.asarray(test_angles, np.float64)])
+    return geo.replace(vectors=vec, vector_angles=all_angles)
+
+
 # ---------------------------------------------------------------- load
 def load_case(path, rescale: bool = True) -> Case:
     """Load a case directory in R2-Gaussian's layout (or the path of its meta_data.json).
@@ -278,6 +320,7 @@ def load_case(path, rescale: bool = True) -> Case:
     clamped = {k: v for k, v in (("proj_train", train_clamp), ("proj_test", test_clamp)) if v}
     try:
         geo = Geometry.from_scanner_dict(scanner, train_angles)
+        geo = _with_entry_vectors(geo, meta, test_angles)
     except (GeometryError, TypeError, ValueError) as e:
         raise DatasetError(f"{meta_path}: {e}") from e
 
@@ -330,8 +373,19 @@ def _validated_stack(arr, n_views, geo, name):
     return a
 
 
+def _vectors_of(geo: Geometry, angles):
+    """The per-view rows of ``angles`` (None for a circular scan)."""
+    if not geo.per_view or len(angles) == 0:
+        return None
+    try:
+        return geo.view_vectors(angles)
+    except GeometryError as e:
+        raise DatasetError(f"case: {e}") from None
+
+
 def save_case(case: Case, out_dir, exr: bool = False) -> Path:
     """Write ``case`` in R2-Gaussian's layout, in FILE units, and return ``out_dir``.
+    A per-view scan writes each entry's "vector" (12 numbers, ``view_vectors`` order).
 
     Lengths and projections are divided by ``case.scene_scale`` (undoing ``load_case``'s
     rescale). ``case.info`` is stored under "mi_grg" in meta_data.json; its optional
@@ -394,12 +448,15 @@ def save_case(case: Case, out_dir, exr: bool = False) -> Path:
         if stack is None:
             continue
         (out / key).mkdir(parents=True, exist_ok=True)
+        vec = _vectors_of(file_geo, angles)
         for i, (img, a) in enumerate(zip(stack, angles)):
             rel = f"{key}/{key}_{i:04d}.npy"
             np.save(out / rel, np.ascontiguousarray(img))
             if exr:
                 write_exr((out / rel).with_suffix(".exr"), img)
             meta[key].append({"file_path": rel, "angle": float(a)})
+            if vec is not None:
+                meta[key][-1]["vector"] = [float(x) for x in vec[i]]
     meta[OUR_KEY] = info
     out.mkdir(parents=True, exist_ok=True)
     if vol is not None:

@@ -212,16 +212,16 @@ class EllipsoidPhantom:
     def line_integrals(self, geometry: Geometry, angles=None) -> np.ndarray:
         """Exact projections ``[view, v, u]`` (float64, density x world length) of every
         pixel centre, source (or parallel-beam start point) to detector pixel, through
-        ``Geometry.rays``. ``angles`` (radians) default to ``geometry.angles``."""
+        the ray formula (``Geometry.vector_rays``; per-view scans included). ``angles`` (radians) default to ``geometry.angles``."""
         a = geometry.angles if angles is None else np.asarray(angles, np.float64).reshape(-1)
         if a.size == 0 or not np.all(np.isfinite(a)):
             raise ValueError("angles must be a non-empty array of finite radians")
         nv, nu = geometry.nDetector
         out = np.empty((a.size, nv, nu))
         vv, uu = np.meshgrid(np.arange(nv) + 0.5, np.arange(nu) + 0.5, indexing="ij")
-        for i, ang in enumerate(a):
-            ca, sa = np.full_like(vv, math.cos(ang)), np.full_like(vv, math.sin(ang))
-            o, d, length = geometry.rays(ca, sa, vv, uu)
+        vec = geometry.view_vectors(a)
+        for i in range(a.size):
+            o, d, length = geometry.vector_rays(list(vec[i]), vv, uu)
             o = np.stack(np.broadcast_arrays(*o), -1)
             d = np.stack(np.broadcast_arrays(*d), -1)
             out[i] = self.ray_integrals(o, d, geometry, np.broadcast_to(length, vv.shape))

@@ -53,6 +53,10 @@ SCANNER_FIELDS = {
     "test_views": ("integer", "held-out test views, default 0; placed half a step after the "
                               "training grid over the same arc"),
     "test_angles": ("string", "test angles, RADIANS (instead of test_views)"),
+    "vectors": ("string", "per-view scan: 12 numbers per training view (ASTRA cone_vec / "
+                          "parallel3d_vec: source or ray, detector centre, u step, v step; "
+                          "length), rows separated by ';', in the order of the angles"),
+    "test_vectors": ("string", "per-view scan: 12 numbers per test view (with vectors)"),
     "noise": ("string", "none | poisson+gaussian, default none (applies to training views)"),
     "I0": ("float", "photons per detector pixel of the unattenuated beam, default 1e4 "
                     "(poisson+gaussian only)"),
@@ -187,7 +191,32 @@ def parse_scanner_fields(fields: dict):
         offOrigin=_tuple("offOrigin", fields.get("offOrigin", "0 0 0")),
         offDetector=_tuple("offDetector", fields.get("offDetector", "0 0")),
         angles=angles)
-    return geometry, test_angles, _parse_noise(fields)
+    return _with_vectors(geometry, fields, test_angles), test_angles, _parse_noise(fields)
+
+
+def _rows(name, value, n) -> np.ndarray:
+    """``n`` rows of 12 numbers from a field (rows separated by ';')."""
+    text = value.replace(";", " ") if isinstance(value, str) else value
+    flat = _numbers(name, text)
+    if flat.size != 12 * n:
+        raise ScanError(f"{name} must hold 12 numbers per view ({n} views: {12 * n}), got "
+                        f"{flat.size}")
+    return flat.reshape(n, 12)
+
+
+def _with_vectors(geometry: Geometry, fields: dict, test_angles) -> Geometry:
+    """The geometry with the scene's per-view vectors (training and test views), if any."""
+    if "vectors" not in fields:
+        if "test_vectors" in fields:
+            raise ScanError("test_vectors needs vectors (the training views' rows)")
+        return geometry
+    if len(test_angles) and "test_vectors" not in fields:
+        raise ScanError("a per-view scan with test views needs test_vectors too")
+    rows = _rows("vectors", fields["vectors"], geometry.n_views)
+    if len(test_angles):
+        rows = np.concatenate([rows, _rows("test_vectors", fields["test_vectors"], len(test_angles))])
+    return geometry.replace(vectors=rows, vector_angles=np.concatenate(
+        [geometry.angles, np.asarray(test_angles, np.float64)]))
 
 
 def _parse_noise(fields):
@@ -531,6 +560,11 @@ def scanner_fields(scan: Scan) -> dict:
             f["test_views"] = int(t.size)
         else:
             f["test_angles"] = ", ".join(_fmt(a) for a in t)
+    if g.per_view:
+        f["vectors"] = "; ".join(" ".join(_fmt(x) for x in r) for r in g.view_vectors())
+        if t.size:
+            f["test_vectors"] = "; ".join(" ".join(_fmt(x) for x in r)
+                                          for r in g.view_vectors(t))
     if scan.noise:
         f["noise"] = scan.noise["model"]
         f["I0"] = float(scan.noise["I0"])

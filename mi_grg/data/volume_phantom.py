@@ -188,10 +188,8 @@ def _march_kernel(tex, shape, geo: Geometry, angles, h):
     dsrc = [(hi[k] - lo[k]) / shape[k] for k in range(3)]
     r = dr.arange(UInt, n_rays)
     view, pix = r // n_pix, r % n_pix
-    cos_t = Float(np.cos(angles).astype(np.float32))
-    sin_t = Float(np.sin(angles).astype(np.float32))
-    ca, sa = dr.gather(Float, cos_t, view), dr.gather(Float, sin_t, view)
-    o, d, _ = geo.rays(ca, sa, Float(pix // nu) + 0.5, Float(pix % nu) + 0.5)
+    o, d, _ = geo.rays_of_views(geo.view_tables(angles), view, Float(pix // nu) + 0.5,
+                                Float(pix % nu) + 0.5)
     t0, t1 = _box_clip(o, d, lo, hi, geo.mode == "parallel")
     length = dr.maximum(t1 - t0, 0.0)
     n_seg = UInt(dr.ceil(length / h))

@@ -659,7 +659,8 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
     given = None
     if data is not None:
         from mi_grg.data.dataset import load_case
-        given = load_case(data, rescale=False).test_angles, f"data set {data}"
+        case = load_case(data, rescale=False)
+        given = case.test_angles, f"data set {data}", case.geometry
     Gaussians.load_npz(npz)   # checked here: a broken file is named as the run's
     try:
         geo, source, pick, extent = _run_geometry(metrics, g, views, det, given)
@@ -681,10 +682,14 @@ def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tup
 def _run_geometry(metrics: dict, g: dict, views: int, det: int, given) -> tuple:
     """(geometry of the cross-check in the run's training frame, where its angles come
     from, the test views picked, the run's truncation extent) from a run's metrics.json
-    (``g``: its "geometry"); ``given``: (test angles, source) of a data set, or None."""
+    (``g``: its "geometry"); ``given``: (test angles, source, geometry) of a data set, or
+    None; a per-view run needs the data set (its test views' vectors)."""
     from mi_grg.data.simulate import default_test_angles
+    if g.get("per_view") and given is None:
+        raise ValueError("the run's scan is per-view: pass --data DIR (the data set, whose "
+                         "test views carry their vectors)")
     if given is not None:
-        angles, source = given
+        angles, source = given[:2]
     elif (metrics.get("data") or {}).get("scene", {}).get("test_angles"):
         angles, source = metrics["data"]["scene"]["test_angles"], "metrics.json (data.scene)"
     else:
@@ -700,7 +705,15 @@ def _run_geometry(metrics: dict, g: dict, views: int, det: int, given) -> tuple:
     geo = Geometry.from_scanner_dict(g, angles[pick.astype(int)]).scaled(
         float(g.get("scene_scale", 1.0)))
     nv, nu = geo.nDetector
-    geo = geo.replace(nDetector=(det, max(1, round(det * nu / nv))))
+    small = (det, max(1, round(det * nu / nv)))
+    vec = None
+    if given is not None and given[2].per_view:
+        # the data set's rows of the picked views, in the training frame, pixels resized
+        vec = given[2].scaled(float(g.get("scene_scale", 1.0))).view_vectors(
+            angles[pick.astype(int)])
+        vec[:, 6:9] *= nu / small[1]
+        vec[:, 9:12] *= nv / small[0]
+    geo = geo.replace(nDetector=small, vectors=vec)
     # the truncation extent the run trained with (the projector's 4.5 before runs recorded it)
     from mi_grg.core.projector import DEFAULT_EXTENT
     extent = float((metrics.get("method_info") or {}).get("extent", DEFAULT_EXTENT))

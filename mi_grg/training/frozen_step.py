@@ -53,6 +53,8 @@ QUANTUM = {"rows": 4096, "cols": 4096, "slices": 4096, "near": 16}
 # Lanes (near: records) per Gaussian before any count was seen (an overflow then sets
 # the real one); near-source records are rare: none until one is seen
 INITIAL_PER_GAUSSIAN = {"rows": 4.0, "cols": 2.0, "slices": 1.0, "near": 0.0}
+# Floats of a view's detector-value input (6 used)
+DETECTOR_PAD = 16
 
 
 class _Static:
@@ -85,15 +87,35 @@ def _owned(x):
 
 def _view_inputs(geometry) -> list:
     """Per view, the frame arrays project_dr builds for that view alone (a PyTree): an
-    input of the step, so that one recording serves every view. (The detector constants
-    are the same for every view, ``view_frames`` checks it: they are built inside, as
-    width-1 inputs would make a recording depend on their addresses' alignment.)"""
+    input of the step, so that one recording serves every view. (Where the detector
+    constants are the same for every view (``ViewFrames.shared``) they are built inside,
+    as width-1 inputs would make a recording depend on their addresses' alignment; a
+    per-view scan's own are a padded input ``det``.)"""
     out = []
+    shared = view_frames(geometry).shared
     for v in range(geometry.n_views):
-        fa = ViewFrameArrays(view_frames(geometry.with_angles(geometry.angles[v:v + 1])))
+        fr = view_frames(geometry.with_angles(geometry.angles[v:v + 1]))
+        fa = ViewFrameArrays(fr)
         out.append({"e": [[_owned(c) for c in axis] for axis in fa.e],
                     "o": [_owned(c) for c in fa.o]})
+        if not shared:
+            # a per-view scan whose detector values differ: they are inputs too, padded
+            # (a width-1 input's alignment would key the recording)
+            vals = np.zeros(DETECTOR_PAD, np.float32)
+            h, a_u, a_v, du, dv = fr.detector_values(0)
+            vals[:6] = (h, h * h, a_u, a_v, du, dv)    # h^2 rounded once, as DetectorConstants
+            out[-1]["det"] = _owned(mi.Float(vals))
     return out
+
+
+def _detector(static: _Static, view: dict) -> DetectorConstants:
+    """The drawn view's detector constants: built inside from the first view where all
+    views share them, read from the inputs (``view["det"]``) where they differ."""
+    det = DetectorConstants(static.frames, static.geometry, static.extent)
+    if "det" in view:
+        vals = [dr.gather(mi.Float, view["det"], mi.UInt32(k)) for k in range(6)]
+        det.h, det.h2, det.a_u, det.a_v, det.du, det.dv = vals
+    return det
 
 
 def _setup(static: _Static, inputs: dict, n: int, caps: tuple) -> _ProjectionSetup:
@@ -102,7 +124,7 @@ def _setup(static: _Static, inputs: dict, n: int, caps: tuple) -> _ProjectionSet
     reads) are left out (the loss read stays outside)."""
     fa = object.__new__(ViewFrameArrays)
     fa.e, fa.o = inputs["view"]["e"], inputs["view"]["o"]
-    det = DetectorConstants(static.frames, static.geometry, static.extent)
+    det = _detector(static, inputs["view"])
     setup = _ProjectionSetup(static.geometry, fa, det, n, 1)
     setup.caps = RowCapacity(*caps)
     return setup

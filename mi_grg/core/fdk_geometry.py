@@ -1,0 +1,142 @@
+"""What FDK needs of a scan beyond a centred circle: offset-detector (half-fan) redundancy
+weights, each view's own source-detector frame, and where FDK is not meaningful.
+
+Offset detector (Wang 2002, in the form of RTK's DisplacedDetectorImageFilter): with
+``l`` the column's detector coordinate (offsets included) and ``theta`` the half-width of
+the part of the detector centred on the principal ray, the weight is 0 beyond ``-theta``
+on the short side, 2 beyond ``theta`` on the long side and
+``1 + sin(pi/2 atan(l / DSD) / atan(theta / DSD))`` between, so that opposite rays of a
+full circle add up to 2 (FDK's full-scan factor 1/2 stays). The short side is then
+zero-padded by one detector width so that the ramp-filtered values there are
+back-projected too. A shift below a tenth of the width is not weighted (as RTK).
+
+Per-view frames (RTK's FDK for its 3-D circular geometry does the same): each view's
+source-to-detector distance ``DSD_i`` (to the detector plane, along its normal), its
+source-to-axis distance ``DSO_i`` and principal point (foot of the normal from the source)
+set the cosine weight, the ramp's sample spacing and the back-projection's magnification
+and distance weight; the voxel is projected onto the view's own detector plane.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mi_grg.core.geometry import Geometry
+
+__all__ = ["offset_weights", "pad_offset_detector", "view_fdk_frames", "caveats"]
+
+# RTK's rule: shifts below this fraction of the width need no redundancy weights
+MIN_SHIFT = 0.1
+# per-view deviations from the nominal circle beyond which FDK is only approximate
+MAX_TILT_DEG = 5.0          # detector roll / tilt
+MAX_HEIGHT = 0.05           # source height, fraction of DSO
+MAX_DISTANCE = 0.1          # DSO, DSD relative change
+# a full circle may lack a few views (held-out ones): a gap counts beyond both of these
+GAP_STEPS, GAP_DEG = 2.5, 45.0
+
+
+def _corners(geo: Geometry):
+    nu = geo.nDetector[1]
+    du = geo.dDetector[1]
+    inf = (0.5 - nu / 2) * du + geo.offDetector[1]
+    sup = (nu / 2 - 0.5) * du + geo.offDetector[1]
+    return inf, sup
+
+
+def offset_weights(geo: Geometry):
+    """The redundancy weights of the columns [nu] (float64) or None (centred enough)."""
+    inf, sup = _corners(geo)
+    if abs(inf + sup) < MIN_SHIFT * abs(sup - inf):
+        return None
+    if inf > 0 or sup < 0:
+        return None      # the principal ray misses the detector: ``caveats`` says so
+    nu = geo.nDetector[1]
+    l = (np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]
+    theta = min(-inf, sup)
+    sdd = geo.DSD if geo.mode == "cone" else None
+    ramp = (np.arctan(l / sdd) / np.arctan(theta / sdd)) if sdd else l / theta
+    w = 1.0 + np.sin(0.5 * np.pi * np.clip(ramp, -1.0, 1.0))
+    return w if sup + inf > 0 else 2.0 - w
+
+
+def pad_offset_detector(proj: np.ndarray, geo: Geometry):
+    """(weighted projections zero-padded by one width on the short side, the geometry of
+    the padded detector), or the inputs unchanged for a centred detector."""
+    w = offset_weights(geo)
+    if w is None:
+        return proj, geo
+    nv, nu = geo.nDetector
+    long_plus = sum(_corners(geo)) > 0
+    out = np.zeros((proj.shape[0], nv, 2 * nu), np.float32)
+    cols = slice(nu, 2 * nu) if long_plus else slice(0, nu)
+    out[:, :, cols] = proj * w[None, None, :].astype(np.float32)
+    du = geo.dDetector[1]
+    shift = -nu / 2 * du if long_plus else nu / 2 * du    # the padded detector's centre
+    padded = geo.replace(nDetector=(nv, 2 * nu), sDetector=(geo.sDetector[0], 2 * nu * du),
+                         offDetector=(geo.offDetector[0], geo.offDetector[1] + shift))
+    if geo.per_view:
+        vec = np.array(geo.vectors)
+        vec[:, 3:6] += shift / du * vec[:, 6:9]
+        padded = padded.replace(vectors=vec)
+    return out, padded
+
+
+def view_fdk_frames(geo: Geometry) -> dict:
+    """Per-view FDK frame, float64 [view] / [view, 3]: ``dsd``, ``dso``, principal point
+    ``u0``, ``v0`` (length, from the detector centre along the unit axes), unit ``n``
+    (source towards detector), and the rows of ``view_vectors``."""
+    vec = geo.view_vectors()
+    s, d, U, V = vec[:, 0:3], vec[:, 3:6], vec[:, 6:9], vec[:, 9:12]
+    eu = U / np.linalg.norm(U, axis=1, keepdims=True)
+    ev = V / np.linalg.norm(V, axis=1, keepdims=True)
+    n = np.cross(eu, ev)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    if geo.mode == "cone":
+        n *= np.sign(np.sum((d - s) * n, 1))[:, None]
+        dsd = np.sum((d - s) * n, 1)
+        dso = -np.sum(s * n, 1)
+        foot = s + dsd[:, None] * n
+    else:
+        n *= np.sign(np.sum(s * n, 1))[:, None]
+        dsd = dso = np.full(len(vec), np.inf)
+        foot = d - np.sum(d * n, 1)[:, None] * n      # where the ray through the axis meets
+    rel = foot - d
+    return {"dsd": dsd, "dso": dso, "u0": np.sum(rel * eu, 1), "v0": np.sum(rel * ev, 1),
+            "n": n, "vectors": vec}
+
+
+def _elevation_deg(a) -> float:
+    """The largest angle of the unit rows ``a`` out of the z = 0 plane (degrees)."""
+    return float(np.degrees(np.arcsin(np.clip(np.abs(a[:, 2]), 0, 1))).max())
+
+
+def caveats(geo: Geometry) -> list:
+    """Why FDK is only approximate on this scan (empty: FDK is meaningful)."""
+    out = []
+    inf, sup = _corners(geo)
+    if inf > 0 or sup < 0:
+        out.append("the detector does not cover the principal ray (offset beyond half its "
+                   "width)")
+    a = np.sort(np.mod(geo.angles, 2 * np.pi))
+    gaps = np.diff(np.concatenate([a, a[:1] + 2 * np.pi])) if a.size > 1 else np.array([2 * np.pi])
+    step = 2 * np.pi / max(a.size, 1)
+    need_full = geo.mode == "cone" or offset_weights(geo) is not None
+    if need_full and a.size > 1 and gaps.max() > max(GAP_STEPS * step, np.radians(GAP_DEG)):
+        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees (FDK here "
+                   "needs a full circle; no short-scan weights)")
+    if geo.per_view and geo.mode == "cone":
+        f = view_fdk_frames(geo)
+        vec = f["vectors"]
+        eu = vec[:, 6:9] / np.linalg.norm(vec[:, 6:9], axis=1, keepdims=True)
+        roll, tilt = _elevation_deg(eu), _elevation_deg(f["n"])
+        height = float(np.abs(vec[:, 2]).max()) / geo.DSO
+        dist = max(float(np.abs(f["dso"] / geo.DSO - 1).max()),
+                   float(np.abs(f["dsd"] / geo.DSD - 1).max()))
+        if max(roll, tilt) > MAX_TILT_DEG:
+            out.append(f"a detector is rolled or tilted by {max(roll, tilt):.1f} degrees "
+                       f"(> {MAX_TILT_DEG})")
+        if height > MAX_HEIGHT:
+            out.append(f"the source leaves the orbit plane by {height:.0%} of DSO "
+                       f"(> {MAX_HEIGHT:.0%})")
+        if dist > MAX_DISTANCE:
+            out.append(f"the source / detector distances vary by {dist:.0%} (> {MAX_DISTANCE:.0%})")
+    return out
