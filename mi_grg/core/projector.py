@@ -74,15 +74,16 @@ import numpy as np
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.geometry import Geometry
 from mi_grg.core.lanes import PACKET
-from mi_grg.core.projector_chunks import PreparedChunk, expand_rows, plan_chunks, view_base
+from mi_grg.core.projector_chunks import (PreparedChunk, RowCapacity, expand_rows, plan_chunks,
+                                          view_base)
 from mi_grg.core.projector_inputs import ProjectorError, validate
 from mi_grg.core.projector_kernels import RecordSums, near_kernel, regular_kernel
 from mi_grg.core.projector_records import (DetectorConstants, RecordFrame, ViewFrameArrays,
                                            gaussian_arrays, near_params, regular_params)
 from mi_grg.core.view_frames import ViewFrames, view_frames
 
-__all__ = ["DEFAULT_EXTENT", "PACKET", "ProjectorError", "ViewFrames", "project", "project_dr",
-           "view_frames"]
+__all__ = ["DEFAULT_EXTENT", "PACKET", "ProjectorError", "ViewFrames", "prepare", "project",
+           "project_dr", "project_prepared", "view_frames"]
 
 DEFAULT_EXTENT = 4.5
 # Work sizes, read at call time (tests shrink them to exercise chunking and batching)
@@ -333,13 +334,37 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
     if density_scale is not None and not isinstance(density_scale, mi.Float):
         density_scale = mi.Float(density_scale)
     validate(gaussians, n, density_scale, means2d, nviews)
-    fr = view_frames(geometry)
-    setup = _ProjectionSetup(geometry, ViewFrameArrays(fr),
-                             DetectorConstants(fr, geometry, extent), n, nviews)
-    g = gaussians
-    flat = dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
-                     density_scale, means2d, setup)
+    flat = project_prepared(prepare(geometry, n, extent), gaussians, density_scale, means2d)
     return mi.TensorXf(flat, shape=(nviews, nv, nu))
+
+
+def prepare(geometry: Geometry, n: int, extent: float = DEFAULT_EXTENT, view=None,
+            frames=None, rows=None) -> _ProjectionSetup:
+    """The setup of one projection of ``n`` Gaussians, as ``project_dr`` builds it, for a
+    caller that projects the same scan again and again (a training step): ``view`` one
+    view's frame arrays ({"e": 3 x 3, "o": 3 mi.Float}; None: every view of
+    ``geometry``), ``frames`` the ViewFrames the detector constants come from (None:
+    ``view_frames(geometry)``; they are the same for every view), ``rows`` (rows, near
+    records): fixed lane capacities, a recorded step's (no host read; the counts stay on
+    the device in ``setup.caps``)."""
+    fr = view_frames(geometry) if frames is None else frames
+    views = ViewFrameArrays(fr) if view is None else ViewFrameArrays.of(view["e"], view["o"])
+    setup = _ProjectionSetup(geometry, views, DetectorConstants(fr, geometry, float(extent)),
+                             n, geometry.n_views if view is None else 1)
+    if rows is not None:
+        setup.caps = RowCapacity(*rows)
+    return setup
+
+
+def project_prepared(setup: _ProjectionSetup, gaussians: Gaussians, density_scale=None,
+                     means2d=None) -> "mi.Float":
+    """The differentiable projection (flat [view, v, u]) of ``prepare``'s setup; no input
+    checks (``project_dr`` has them, ``check`` here)."""
+    g = gaussians
+    if setup.n == 0:
+        return dr.zeros(mi.Float, setup.nviews * int(np.prod(setup.geometry.nDetector)))
+    return dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
+                     density_scale, means2d, setup)
 
 
 def project(gaussians: Gaussians, geometry: Geometry, angles=None, extent: float = DEFAULT_EXTENT,

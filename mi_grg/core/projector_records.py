@@ -62,6 +62,13 @@ class ViewFrameArrays:
         # origin coordinates in the view frame, in float64 before rounding
         self.o = [to_dr(mi.Float, np.sum(fr.origin * axis, 1)) for axis in (fr.e_n, fr.e_u, fr.e_v)]
 
+    @classmethod
+    def of(cls, e, o) -> "ViewFrameArrays":
+        """Frame arrays given as Dr.Jit arrays (e: 3 x 3, o: 3), e.g. a recording's inputs."""
+        fa = cls.__new__(cls)
+        fa.e, fa.o = e, o
+        return fa
+
 
 def gaussian_arrays(g: Gaussians, density_scale):
     """Per-Gaussian Dr.Jit quantities shared by all views (differentiable).

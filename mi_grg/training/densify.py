@@ -275,6 +275,21 @@ class PGADensifier:
             self.grad_accum, self.view_count = acc, cnt
         dr.eval(self.grad_accum, self.view_count)
 
+    def recorded_inputs(self, n: int):
+        """The statistics' inputs of a recorded step for N Gaussians (the accumulators,
+        zeroed on the first call as ``accumulate`` does), or None where they do not match
+        N (``accumulate`` then raises its error)."""
+        if self.grad_accum is None:
+            self.reset(n)
+        if self.size != n:
+            return None
+        return {"grad_accum": self.grad_accum, "view_count": self.view_count}
+
+    def add(self, stats) -> None:
+        """Take one view's statistics added elsewhere (a recorded step's ``add_one_view``
+        of ``recorded_inputs``): (grad_accum, view_count)."""
+        self.grad_accum, self.view_count = stats
+
     def averaged_gradient(self) -> "mi.Float":
         """Mean gradient norm over the views that saw each Gaussian (0 if none)."""
         if self.grad_accum is None:

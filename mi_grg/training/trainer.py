@@ -51,25 +51,9 @@ from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
 from mi_grg.protocol.early_stop import EarlyStopper
 from mi_grg.protocol.views import ViewProtocol, stop_from
-
-# The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
-# we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
-REFERENCE_N = 50000
-
-
-def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
-    """The Laplacian term's weight at N Gaussians, lambda_lap x REFERENCE_N / N, as an
-    opaque scalar: as a literal it changed with every densification and made new kernels."""
-    return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
-
-
-def evaluate_gradients(raw: dict, *extra) -> None:
-    """Every raw parameter's gradient (and ``extra`` arrays, such as the means2d gradient)
-    in one kernel, after the backward pass. They share the derivative chain from the
-    projector's record parameters to the raw parameters; read one by one (the
-    densification statistics, then Adam's groups), each read re-ran that chain."""
-    dr.eval(*extra, *(dr.grad(v) for v in raw.values()))
-
+from mi_grg.training.step import (REFERENCE_N, StepConfig, StepInputs,  # noqa: F401
+                                  evaluate_gradients, laplacian_weight, loss_and_grads,
+                                  tv_block, view_arrays)
 
 def iteration_rule(geometry) -> int:
     """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
@@ -236,7 +220,12 @@ class Trainer:
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
         self._stop = None     # where the stop rule fired (views.Stop), set by run()
-        self.frozen = self._frozen_step() if cfg.run.frozen_step else None
+        self.step_cfg = StepConfig.from_train_config(cfg, geo, self.extent, self.tv_extent)
+        self._view_arrays = {}
+        self.recording = None
+        if cfg.run.frozen_step:
+            from mi_grg.training.recording import Recording
+            self.recording = Recording(self.step_cfg)
         if resuming:
             self.state = load_checkpoint(source, self.optimizer, self.densifier,
                                          self.stopper, cfg)
@@ -516,58 +505,45 @@ class Trainer:
         return self._finish()
 
     def _step(self, it: int, raw: dict):
-        """One iteration: a random training view's (``views.train_views``) projection loss (+ TV on a random block
-        every ``tv_every``-th iteration, + the graph Laplacian), backward, densification
-        statistics, Adam. Returns (new raw, loss value). Random draws, in this order: the
-        view, then the TV block's corner."""
-        from mi_grg.training.graph import laplacian_loss
-        from mi_grg.training.losses import projection_loss, tv_3d
-        cfg, geo = self.cfg, self.case.geometry
-        nv, nu = geo.nDetector
-        weights = self.views.draw_weights(it, self._stop)
-        view = int(self.rng.choice(self.views.train_views(it, self._stop), p=weights))
-        start = self._tv_start(it)
-        if self.frozen is not None:
-            done = self.frozen.iteration(self, it, raw, view, start, laplacian_weight)
-            if done is not None:
-                return done
-        g = Gaussians.from_raw(raw)
-        ds = self._density_scale
-        n = len(g)
-        means2d = dr.zeros(mi.Vector2f, n)
-        dr.enable_grad(means2d)
-        img = self._project(g, geo.angles[view:view + 1], ds, means2d)
-        pred = mi.TensorXf(img.array, (nv, nu))
-        loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
-        if start is not None:
-            block = np.minimum(cfg.losses.tv_block, np.asarray(geo.nVoxel))
-            from mi_grg.core.voxelizer import voxelize_dr
-            vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
-                              density_scale=ds)
-            loss = loss + (cfg.losses.lambda_tv * cfg.losses.tv_every) * tv_3d(vol)
-        if cfg.graph.lambda_lap > 0 and self.graph is not None:
-            lap = laplacian_loss(self.graph, g.densities, normalise=False)
-            loss = loss + laplacian_weight(cfg.graph.lambda_lap, n) * lap
-        dr.backward(loss)
-        # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
-        # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
-        grad2d = dr.grad(means2d)
-        evaluate_gradients(raw, grad2d, dr.detach(loss))
-        gnorm = dr.norm(mi.Vector2f(grad2d.x * (nu / 2.0), grad2d.y * (nv / 2.0)))
-        self.densifier.accumulate(gnorm, visible=gnorm > 0)
-        loss_value = float(loss[0]) if dr.width(loss) else float(loss)
+        """One iteration: draw a training view (``views.train_views``), then the TV block's
+        corner; the loss and its gradients (``step.loss_and_grads``, replayed from a
+        recording where one serves); densification statistics; Adam. Returns (new raw,
+        loss value)."""
+        view = int(self.rng.choice(self.views.train_views(it, self._stop),
+                                   p=self.views.draw_weights(it, self._stop)))
+        inputs = self._step_inputs(raw, view, self._tv_start(it))
+        done = self._replay(inputs) if self.recording is not None else None
+        if done is None:        # traced (or handed back by the recording)
+            out = loss_and_grads(self.step_cfg, inputs)
+            done = {"grads": out.grads, "gnorm": out.gnorm}, float(out.loss[0])
+        out, loss_value = done
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
-        return self.optimizer.step(raw), loss_value
+        if "stats" in out:      # the statistics and Adam were recorded too
+            self.densifier.add(out["stats"])
+            return self.optimizer.apply(out["raw"], out["m"], out["v"]), loss_value
+        self.densifier.accumulate(out["gnorm"], visible=out["gnorm"] > 0)
+        return self.optimizer.step(raw, grads=out["grads"]), loss_value
 
-    def _frozen_step(self):
-        """The recorded iteration (``TrainConfig.run.frozen_step``) for this run's losses."""
-        from mi_grg.training.frozen_step import FrozenStep
-        cfg, geo = self.cfg, self.case.geometry
-        tv = (cfg.losses.lambda_tv * cfg.losses.tv_every,
-              np.minimum(cfg.losses.tv_block, geo.nVoxel), self.tv_extent)
-        return FrozenStep(geo, self.extent, cfg.losses.lambda_ssim, cfg.graph.lambda_lap,
-                          tv=tv)
+    def _step_inputs(self, raw: dict, view: int, start=None, density_scale="current"):
+        """The step's inputs of this state for ``view`` (TV block at ``start``)."""
+        lap = None
+        if self.step_cfg.lambda_lap > 0 and self.graph is not None:
+            lap = laplacian_weight(self.step_cfg.lambda_lap, dr.width(raw["raw_densities"]))
+        arrays = self._view_arrays.get(view)
+        if arrays is None:
+            arrays = self._view_arrays[view] = view_arrays(self.case.geometry, view)
+        ds = self._density_scale if density_scale == "current" else density_scale
+        return StepInputs(raw, arrays, self.targets[view], ds, self.graph, lap, start)
+
+    def _replay(self, inputs: StepInputs):
+        """(outputs, loss value) of the recorded step, with the statistics and Adam
+        recorded too where they can be; None: run this iteration traced."""
+        n = dr.width(inputs.raw["raw_densities"])
+        stats = self.densifier.recorded_inputs(n)
+        adam = self.optimizer.recorded_inputs(inputs.raw)
+        update = None if stats is None or adam is None else {"stats": stats, "adam": adam}
+        return self.recording.step(inputs, update, (self.optimizer.betas, self.optimizer.eps))
 
     def _tv_start(self, it: int):
         """This iteration's TV block corner [x, y, z] (a random draw), or None (no TV)."""
@@ -575,7 +551,7 @@ class Trainer:
         if not (cfg.losses.lambda_tv > 0 and it % cfg.losses.tv_every == 0):
             return None
         nvox = np.asarray(self.case.geometry.nVoxel)
-        block = np.minimum(cfg.losses.tv_block, nvox)
+        block = self.step_cfg.tv.block
         return [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
 
     def _densify_and_rebuild(self, it: int, raw: dict) -> dict:
@@ -728,21 +704,17 @@ class Trainer:
         return float(psnr_proj(pred, self.case.train[self.held_idx]))
 
     def _refit(self, raw, n_iter: int):
-        """Brief refit on all views (held-out ones included) after early stopping."""
-        from mi_grg.training.losses import projection_loss
-        geo, cfg = self.case.geometry, self.cfg
-        nv, nu = geo.nDetector
+        """Brief refit on all views (held-out ones included) after early stopping: the
+        step's projection loss alone (``StepConfig.refit``)."""
+        cfg = self.step_cfg.refit()
         raw = {k: dr.detach(v) for k, v in raw.items()}
         for v in raw.values():
             dr.enable_grad(v)
         for _ in range(n_iter):
-            view = int(self.rng.integers(0, geo.n_views))
-            g = Gaussians.from_raw(raw)
-            img = self._project(g, geo.angles[view:view + 1], self.final_density_scale)
-            pred = mi.TensorXf(img.array, (nv, nu))
-            loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
-            dr.backward(loss)
-            raw = self.optimizer.step(raw)
+            view = int(self.rng.integers(0, self.case.geometry.n_views))
+            out = loss_and_grads(cfg, self._step_inputs(raw, view,
+                                                        density_scale=self.final_density_scale))
+            raw = self.optimizer.step(raw, grads=out.grads)
         return raw
 
 
