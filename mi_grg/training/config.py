@@ -229,7 +229,7 @@ class Run:
                                    # iteration_rule (mi_grg.training.budget); None: no budget
     frozen_step: bool = True       # record the iteration once with dr.freeze and replay
                                    # it (no Python tracing per iteration;
-                                   # mi_grg.training.frozen_step): the same results, less
+                                   # mi_grg.training.recording): the same results, less
                                    # host time, which is most of a GPU's iteration
                                    # (docs/benchmarks.md, "On a GPU"); false: traced
 
