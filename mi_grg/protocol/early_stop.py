@@ -5,8 +5,9 @@ The paper evaluates PSNR every 500 iterations and stops "if the PSNR decreases b
 of several small drops also stops the run; the caller keeps a state (see below).
 
 ``patience`` is the number of evaluations in a row that must lie below that margin
-(1 = the paper's rule as written). At our scaled schedules (12 evaluations in 1500
-iterations rather than 60 in 30k) the held-out PSNR still rises late in training and
+(1 = the paper's rule as written). At our scaled schedules (an evaluation every 125
+iterations up to 7500 iterations, e.g. 24 in a 64^3 run's 3000, rather than 60 in 30k)
+the held-out PSNR still rises late in training and
 wobbles around that trend by about the margin itself, so a single dip ended runs that
 recovered at the next evaluation (docs/benchmarks.md, "Measurements behind defaults").
 The default is 2 (``STOP_RULE``).

@@ -171,7 +171,7 @@ class Losses:
                                    # rasterisers; it needs (3/4.5)^3 = 0.3x the voxel pairs
     tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
                                    # the same expected gradient (the block is random anyway)
-                                   # for half the TV cost (docs/benchmarks.md)
+                                   # for 1/n of the TV cost (bench/train_step.py times it)
 
 
 @dataclass

@@ -3,8 +3,9 @@
     FDK of the fitting views -> De-Init (or plain FDK init for R2) -> per iteration: one
     view's projection loss (L1 + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
     block (every ``tv_every``-th iteration, weighted ``tv_every`` x) + lambda_lap graph
-    Laplacian -> Adam -> PGA densification every 100 iterations
-    (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
+    Laplacian -> Adam -> PGA densification every ``densify_interval`` iterations inside
+    its window (the paper's 100 of 30k, scaled to the run: 25 up to 7500 iterations; graph
+    rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
     early stop, keeping the latest state within the stop margin of the best (or the best:
     ``keep_state``) -> once the stop rule is done, every view trains to the end
     (``mi_grg.protocol.views``).
