@@ -31,9 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -43,101 +41,20 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
-from mi_grg.training.budget import BudgetPlanner, replans_of
-from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
-                                        load_checkpoint, save_checkpoint)
-from mi_grg.training.config import (ITERATION_RULE, TRAIN_EXTENT, TrainConfig,
-                                    iterations_for_size, make_config)
+from mi_grg.training.checkpoint import TrainState, checkpoint_time_plan, load_checkpoint
+from mi_grg.training.config import ITERATION_RULE, TRAIN_EXTENT, TrainConfig, make_config
+from mi_grg.training.interrupt import DeferredInterrupt
+from mi_grg.training.stopping import StopControl
+from mi_grg.training.schedule import (_scaled, checkpoint_interval,  # noqa: F401
+                                      gaussian_cap, iteration_rule)
 from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
-from mi_grg.protocol.early_stop import EarlyStopper
-from mi_grg.protocol.views import ViewProtocol, stop_from
+from mi_grg.protocol.views import ViewProtocol
+from mi_grg.training.run_budget import TimeBudget
+from mi_grg.training.run_files import RunFiles
 from mi_grg.training.step import (REFERENCE_N, StepConfig, StepInputs,  # noqa: F401
                                   evaluate_gradients, laplacian_weight, loss_and_grads,
-                                  tv_block, view_arrays)
-
-def iteration_rule(geometry) -> int:
-    """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
-
-    n = max(nVoxel): 3000 x sqrt(n / 64), at least 500, up to 64^3 (48^3 -> 2598); above,
-    3000 x n / 64 up to twice that (96^3 -> 4500, 128^3 and up -> 6000).
-
-    Why: the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20 min,
-    256^3 <= 60 min per run) are the limit, not the model. At 64^3 3000 iterations fit the
-    5 minutes; at 128^3 6000 fit the 20, and shells and shepp were still improving where
-    the sparse needles peak early and lose a little, which no projection-domain measure
-    we found tells apart (docs/benchmarks.md, "The rule at 128^3" and "The iteration rule
-    re-derived"). 256^3 keeps the 6000 it had. The schedule (densification window,
-    evaluation interval) scales with the count (``_scaled``), up to this count (the
-    default ``horizon``); ``time_budget`` plans the count to a wall-clock budget instead;
-    ``iterations=1500`` suits sparse objects.
-    """
-    return iterations_for_size(max(geometry.nVoxel))
-
-
-def gaussian_cap(cfg: TrainConfig, geometry) -> int:
-    """Densification cap: min(max_gaussians, ceil(max_gaussians_per_voxel x voxel count)).
-
-    64^3 -> 131072, 128^3 and up -> the 500k of ``max_gaussians``. A per-voxel factor of 0
-    leaves ``max_gaussians`` alone. Below about 46^3 the default 50k De-Init points (capped
-    by the candidate voxels) can already reach the cap; densification then only refills
-    what pruning removes."""
-    cap = int(cfg.densify.max_gaussians)
-    if cfg.densify.max_gaussians_per_voxel > 0:
-        voxels = int(np.prod(np.asarray(geometry.nVoxel, dtype=np.int64)))
-        cap = min(cap, max(1, math.ceil(cfg.densify.max_gaussians_per_voxel * voxels)))
-    return cap
-
-
-def checkpoint_interval(checkpoint_every: int | None, iterations: int) -> int:
-    """Iterations between checkpoints: ``checkpoint_every``, or when None a tenth of the
-    run, at least 1 and at most 500, so that a short run is checkpointed too."""
-    if checkpoint_every is not None:
-        return int(checkpoint_every)
-    return min(500, max(1, int(iterations) // 10))
-
-
-class _DeferredInterrupt:
-    """Ctrl-C (SIGINT) inside the training loop, noted and acted on once the iteration in
-    progress is done: inside one the optimiser, the densifier and the generator advance at
-    different moments, so only between iterations is there one state to checkpoint. A
-    second Ctrl-C interrupts at once. Does nothing outside the main thread (no signal
-    handler there) or where SIGINT is ignored."""
-
-    def __init__(self):
-        self.requested, self._installed, self._old = False, False, None
-
-    def __enter__(self):
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
-            self._old = signal.signal(signal.SIGINT, self._note)
-            self._installed = True
-        return self
-
-    def _note(self, signum, frame):
-        self.requested = True
-        signal.signal(signal.SIGINT, self._previous())
-        print("\ninterrupted: finishing this iteration and writing a checkpoint "
-              "(Ctrl-C again to stop at once)", file=sys.stderr)
-
-    def _previous(self):
-        # None: a handler installed from C, which Python cannot reinstate
-        return signal.default_int_handler if self._old is None else self._old
-
-    def __exit__(self, *exc):
-        if self._installed:
-            signal.signal(signal.SIGINT, self._previous())
-        return False
-
-
-def _scaled(cfg: TrainConfig, iterations: int) -> dict:
-    """Densification window and eval intervals, scaled from the paper's 30k."""
-    f = iterations / 30000.0
-    return {"densify_start": max(1, int(cfg.densify.densify_start * f)),
-            "densify_stop": max(2, int(cfg.densify.densify_stop * f)),
-            "densify_interval": max(1, int(cfg.densify.densify_interval * max(f, 0.25))),
-            "eval_every": max(50, int(cfg.protocol.eval_every * max(f, 0.25)))}
-
+                                  view_arrays)
 
 def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     """Densities x old_scale[source] / new_scale, after a densification and graph rebuild.
@@ -162,14 +79,6 @@ def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     return out
 
 
-def _second_of_two(fn) -> float:
-    """Seconds of the second of two calls of ``fn`` (the first traces and compiles)."""
-    fn()
-    t = time.perf_counter()
-    fn()
-    return time.perf_counter() - t
-
-
 # ---------------------------------------------------------------------------- training
 class Trainer:
     """One training run on a case. Construct, then ``run()``; see the module docstring."""
@@ -178,11 +87,9 @@ class Trainer:
                  resume=False):
         t_begin = time.perf_counter()
         self.case, self.cfg, self.progress = case, cfg, progress
-        self.out = Path(out_dir) if out_dir is not None else None
-        if self.out is not None:
-            self.out.mkdir(parents=True, exist_ok=True)
+        self.files = RunFiles(out_dir)
+        self.out, self.checkpoint_path = self.files.out, self.files.checkpoint_path
         geo = case.geometry
-        self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
         # resume: True continues from out_dir's checkpoint; a path from that file (a run
         # written into a new folder that replaces its old output when done: the CLI's)
         source = (Path(resume) if isinstance(resume, (str, os.PathLike))
@@ -211,16 +118,13 @@ class Trainer:
         if cfg.protocol.monitor_3d and case.vol_gt is None:
             raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
                              "this case has none (vol_gt.npy); use the held-out views")
-        self.stopper = EarlyStopper(drop=cfg.protocol.stop_drop,
-                                    patience=cfg.protocol.stop_patience,
-                                    keep=cfg.protocol.keep_state, noise=cfg.protocol.stop_noise)
+        self.stopping = StopControl(cfg.protocol)
         self.graph = None
         # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
         # set with the graph: constant until the next rebuild.
         self._density_scale = None
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
-        self._stop = None     # where the stop rule fired (views.Stop), set by run()
         self.step_cfg = StepConfig.from_train_config(cfg, geo, self.extent, self.tv_extent)
         self._view_arrays = {}
         self.recording = None
@@ -243,16 +147,20 @@ class Trainer:
         # Wall clock of the calls this run resumed from (metrics.json's seconds add it).
         self.resumed_seconds = self.state.wall_seconds if resuming else 0.0
         self._wall_start = t_begin - self.resumed_seconds
-        self.planner = None
+        self.budget = None
         if cfg.run.time_budget is not None:
-            self.planner = self._budget_planner()
-            if resuming:      # the recorded plan, replayed (another machine would plan otherwise)
-                for r in replans_of(self.planner.plan):
-                    self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
-            else:
-                self.state.time_plan = self.planner.plan_run(len(g), lambda: self._probe(g),
-                                                             t_begin)
-                self._schedule(self.time_plan["iterations"])
+            self.budget = TimeBudget(self)
+            self.budget.start(resuming, None if resuming else g, t_begin)
+
+    @property
+    def stopper(self):
+        """The run's EarlyStopper (``StopControl``)."""
+        return self.stopping.stopper
+
+    @property
+    def _stop(self):
+        """Where the stop rule fired (views.Stop), or None."""
+        return self.stopping.stop
 
     @property
     def time_plan(self) -> dict | None:
@@ -292,78 +200,10 @@ class Trainer:
         """The length the schedule is scaled to: the run's, at most the horizon."""
         return min(int(iterations), self.horizon)
 
-    def _budget_planner(self) -> BudgetPlanner:
-        """The time_budget planner of this run, on the state's plan (a resumed run's)."""
-        def window_end(iterations: int, eval_every: int) -> int:
-            return dataclasses.replace(self.views, iterations=iterations,
-                                       eval_every=eval_every).window_end
-        return BudgetPlanner(self.cfg.run.time_budget, gaussian_cap(self.cfg, self.case.geometry),
-                             lambda iterations: _scaled(self.cfg, self._scheduled(iterations)),
-                             window_end,
-                             self._logs_3d, plan=self.state.time_plan)
-
-    def _replan(self, it: int, seconds: float, n: int) -> None:
-        """Ask the planner for the rest of the run at ``it`` and apply its answer."""
-        r = self.planner.replan(it, seconds, n, self.state.log, self.sched,
-                                self.densifier.is_densify_iteration)
-        if r is not None:
-            self._set_rest_of_run(it, r["iterations"], r["densify_stop"])
-
-    def _set_rest_of_run(self, at: int, iterations: int, densify_stop: int | None = None) -> None:
-        """The run ends at ``iterations`` instead (decided at iteration ``at``): the held-out
-        window moves with it, the learning-rate decay is stretched to it without a jump, and
-        (while densifying) the window ends at ``densify_stop``. The densification and
-        evaluation intervals stay as first planned."""
-        self.iterations = int(iterations)
-        self.views = dataclasses.replace(self.views, iterations=self.iterations)
-        end = self._scheduled(self.iterations)
-        if at < min(end, self.optimizer.max_steps):   # else the decay is past its end
-            self.optimizer.rehorizon(at, end)
-        if densify_stop is not None:
-            self.sched["densify_stop"] = int(densify_stop)
-            self.densifier.config = dataclasses.replace(self.densifier.config,
-                                                        stop=int(densify_stop))
-
-    def _probe(self, g: Gaussians, steps: int = 8) -> dict:
-        """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
-        compile the kernels), one held-out evaluation, one graph rebuild and one 3-D PSNR
-        log (each the second of two), on a copy of ``g`` with the current (provisional) optimiser and
-        densifier, which ``_schedule`` replaces afterwards; the run's RNG is not drawn."""
-        raw = g.to_raw()
-        for v in raw.values():
-            dr.enable_grad(v)
-        rng, self.rng = self.rng, np.random.default_rng(0)
-        rebuild = 0.0
-        try:
-            if self.uses_graph:
-                rebuild = _second_of_two(lambda: self._rebuild_graph(raw["positions"]))
-            for it in (1, 2):
-                raw, _ = self._step(it, raw)
-            t = time.perf_counter()
-            for it in range(3, 3 + steps):
-                raw, _ = self._step(it, raw)
-            step = (time.perf_counter() - t) / steps
-            evaluation = log_3d = 0.0
-            if len(self.held_idx):
-                evaluation = _second_of_two(lambda: self._heldout_psnr(raw))
-            if self.case.vol_gt is not None:
-                log_3d = _second_of_two(lambda: self._psnr_3d(raw))
-        finally:
-            self.rng, self.graph, self._density_scale = rng, None, None
-        return {"step": step, "evaluation": evaluation, "rebuild": rebuild, "log_3d": log_3d}
-
     def _psnr_3d(self, raw: dict) -> float:
         """The research log's 3-D PSNR of the current state against the ground truth."""
         from mi_grg.evaluation.metrics import psnr_3d
         return float(psnr_3d(self.volume(raw, self._density_scale), self.case.vol_gt))
-
-    def _logs_3d(self, iterations: int, after: int, eval_every: int) -> int:
-        """How many 3-D PSNR logs (``_evaluate``) iterations after+1 .. ``iterations``
-        make: one every ``log_3d_every`` (else at every evaluation), one at the end."""
-        if self.case.vol_gt is None:
-            return 0
-        every = self.cfg.protocol.log_3d_every or eval_every
-        return max(0, iterations // every - after // every) + 1
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
@@ -467,8 +307,8 @@ class Trainer:
                    dynamic_ncols=True, mininterval=1.0)
         last_psnr = None
         # The stop rule's verdict (restored on resume) decides the view sets and the end.
-        self._stop = stop_from(self.stopper.state_dict())
-        with _DeferredInterrupt() as interrupt:
+        self.stopping.restore()
+        with DeferredInterrupt() as interrupt:
             while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
                 it = st.iteration + 1
                 raw, loss_value = self._step(it, raw)
@@ -479,9 +319,8 @@ class Trainer:
                 row = {"iteration": it,
                        "seconds": round(time.perf_counter() - self._t_start, 3),
                        "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-                if (self.planner is not None and self.planner.wants_replan(
-                        it, densified, self.sched["densify_stop"])):
-                    self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
+                if self.budget is not None and self.budget.after_iteration(
+                        it, densified, row["seconds"], row["n_gaussians"]):
                     bar.total = self.iterations
                 raw = self._evaluate(it, raw, row)
                 last_psnr = row.get("heldout_psnr", last_psnr)
@@ -492,8 +331,8 @@ class Trainer:
                                 refresh=False)
                 st.seconds = time.perf_counter() - self._t_start
                 st.rng = self.rng.bit_generator.state
-                if (self.planner is not None and st.stopped_by is None
-                        and self.planner.out_of_time(st.seconds)):
+                if (self.budget is not None and st.stopped_by is None
+                        and self.budget.out_of_time(st.seconds)):
                     st.stopped_by = (f"time budget ({self.cfg.run.time_budget:g} s) reached at "
                                      f"iteration {it} of {self.iterations} planned")
                 every = checkpoint_interval(self.cfg.run.checkpoint_every, self.iterations)
@@ -597,33 +436,16 @@ class Trainer:
             return raw
         row["heldout_psnr"] = self._heldout_psnr(raw)
         watched = row.get("psnr_3d") if cfg.protocol.monitor_3d else row["heldout_psnr"]
-        # Densification reshapes the model; judge (and keep) states only after it.
-        if watched is not None and it < self.sched["densify_stop"]:
-            self.stopper.observe(it, watched)     # informs the rule's noise margin only
-        elif watched is not None:
-            if cfg.protocol.monitor_3d:
-                self.stopper.label = "3-D PSNR vs ground truth (research option)"
-            verdict = self.stopper.update(it, watched)
-            if self.stopper.kept_iteration == it:
-                st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
-                ds = self._density_scale
-                st.kept_density_scale = None if ds is None else mi.Float(ds)
-            elif verdict == "stop":
-                self._stop = stop_from(self.stopper.state_dict())
-                if self.views.end(self._stop) == it:
-                    st.stopped_by = self.stopper.reason
-                else:   # go on from the kept state, on every view
-                    raw = {k: dr.detach(v) for k, v in st.kept_raw.items()}
-                    for v in raw.values():
-                        dr.enable_grad(v)
-                    st.raw, self._density_scale = raw, st.kept_density_scale
+        raw, self._density_scale = self.stopping.judge(
+            it, watched, it < self.sched["densify_stop"], st, raw, self._density_scale,
+            self.views)
         return raw
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint_path is not None:
             self.state.wall_seconds = time.perf_counter() - self._wall_start
-            save_checkpoint(self.checkpoint_path, self.state, self.optimizer, self.densifier,
-                            self.stopper, self.cfg)
+            self.files.save_checkpoint(self.state, self.optimizer, self.densifier,
+                                       self.stopper, self.cfg)
 
     def _finish(self) -> dict:
         """Why the run ended, the state to return (the last one once the held-out views
@@ -631,13 +453,7 @@ class Trainer:
         ``refit_iterations``), the summary; with an output folder, the final checkpoint,
         train_log.csv / .png and the Gaussians (.npz, .ply)."""
         cfg, st, stop = self.cfg, self.state, self._stop
-        if st.stopped_by is None and stop is not None and st.iteration >= self.views.end(stop):
-            st.stopped_by = (f"{self.stopper.reason}; then "
-                             f"{self.views.after_stop(stop.kept_iteration)} iterations on "
-                             f"every view from the state of iteration {stop.kept_iteration}")
-        if st.stopped_by is None:
-            st.stopped_by = (f"iteration budget ({self.iterations}) reached"
-                             if st.iteration >= self.iterations else "interrupted")
+        self.stopping.ending(st, self.views, self.iterations)
         joined = self.views.joined(st.iteration, stop)
         returned = st.iteration
         if joined:      # the last state, trained on every view
@@ -652,10 +468,8 @@ class Trainer:
             final = self._refit(final, cfg.protocol.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
-                   "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
-                   "kept_iteration": self.stopper.kept_iteration,
-                   "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
-                                         else None),
+                   "stopped_by": st.stopped_by,
+                   **self.stopping.summary(st, self.views, returned),
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds,
                    "schedule": {**self.sched, "horizon": self.horizon,
@@ -667,28 +481,12 @@ class Trainer:
                    "resumed_seconds": self.resumed_seconds,
                    "max_gaussians": self.densifier.config.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
-                   "views": self.views.record(st.iteration, stop, self.stopper.history,
-                                              self.stopper.reason, returned),
-                   # the margin the last decision used (mi_grg.protocol.early_stop)
-                   "stop_margin": {"drop": cfg.protocol.stop_drop,
-                                   "noise": cfg.protocol.stop_noise,
-                                   "scatter_db": self.stopper.scatter(),
-                                   "margin_db": (self.stopper.margin()
-                                                 if math.isfinite(self.stopper.best)
-                                                 else None)},
                    "time_plan": self.time_plan,
                    # what the automatic fields resolved to (lab.staleness.stale_keys compares)
                    "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
-            from mi_grg.data.ply import save_ply
-            from mi_grg.evaluation.plotting import plot_log
-            from mi_grg.training.log import write_log
             self._save_checkpoint()
-            write_log(self.out / "train_log.csv", st.log)
-            plot_log(self.out / "train_log.png", st.log, returned)
-            g = self.field_gaussians()
-            g.save_npz(self.out / "gaussians.npz")
-            save_ply(g, self.out / "gaussians.ply")
+            self.files.write_final(st.log, returned, self.field_gaussians())
         return summary
 
     # ------------------------------------------------------------------ held-out views
