@@ -171,3 +171,22 @@ class EarlyStopper:
         self.kept_iteration = int(state.get("kept_iteration", self.best_iteration))
         # checkpoints from before the scatter margin: the judged evaluations are all known
         self.seen = [tuple(x) for x in state.get("seen", state["history"])]
+
+
+def replay(iterations, values, drop=None, patience=None, start=0, noise=None):
+    """(iteration at which ``EarlyStopper(drop, patience, noise)`` would stop on a logged
+    series of watched values (None entries skipped), or None; the best iteration).
+    ``drop``, ``patience`` and ``noise`` default to ``STOP_RULE``'s (TrainConfig's
+    defaults). As in training, only evaluations at iterations >= ``start`` (the end of
+    densification) are judged; the earlier ones inform the noise margin."""
+    st = EarlyStopper(drop=STOP_RULE.drop if drop is None else drop,
+                      patience=STOP_RULE.patience if patience is None else patience,
+                      noise=STOP_RULE.noise if noise is None else noise)
+    for it, v in zip(iterations, values):
+        if v is None:
+            continue
+        if it < start:
+            st.observe(int(it), v)
+        elif st.update(int(it), v) == "stop":
+            return int(it), st.best_iteration
+    return None, st.best_iteration
