@@ -161,7 +161,7 @@ class _Step:
         import mitsuba as mi
         from mi_grg.data.simulate import default_geometry
         from mi_grg.training.config import make_config
-        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.densify import PGADensifier
         from mi_grg.training.graph import build_graph, graph_density_scale
         from mi_grg.training.optim import Adam
         self.raw, train = _load_state(method, n)
@@ -172,7 +172,11 @@ class _Step:
         self.iterations = iteration_rule(self.geo)
         self.targets = [mi.TensorXf(np.ascontiguousarray(t)) for t in train]
         self.optimizer = Adam.from_train_config(config, max_steps=self.iterations)
-        self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
+        try:    # a revision from before the one densification settings class
+            from mi_grg.training.densify import DensifyConfig
+            self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
+        except ImportError:
+            self.densifier = PGADensifier(config.densify, seed=cfg.seed)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.graph = self.ds = None
         if self.uses_graph:

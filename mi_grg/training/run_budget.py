@@ -73,7 +73,7 @@ class TimeBudget:
             t.optimizer.rehorizon(at, end)
         if densify_stop is not None:
             t.sched["densify_stop"] = int(densify_stop)
-            t.densifier.config = dataclasses.replace(t.densifier.config, stop=int(densify_stop))
+            t.densifier.window = dataclasses.replace(t.densifier.window, stop=int(densify_stop))
 
     def probe(self, g, steps: int = 8) -> dict:
         """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that

@@ -28,7 +28,6 @@ Units: the loop works in the case's units (R2-Gaussian's normalised scene, volum
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import sys
@@ -171,7 +170,7 @@ class Trainer:
     def _schedule(self, iterations: int) -> None:
         """The parts that depend on the run's length: the scaled schedule, the view protocol,
         a fresh densifier and optimiser."""
-        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.densify import DensifyWindow, PGADensifier
         from mi_grg.training.optim import Adam
         cfg, geo = self.cfg, self.case.geometry
         self.iterations = int(iterations)
@@ -187,12 +186,12 @@ class Trainer:
                                   1.0 if cfg.protocol.monitor_3d else cfg.protocol.holdout_until,
                                   self.iterations, sched["eval_every"],
                                   cfg.protocol.holdout_catch_up, horizon=self.horizon)
-        # The config's window and cap are the paper's; this run's depend on its length and grid.
-        dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
-                                   start=sched["densify_start"],
-                                   stop=sched["densify_stop"], interval=sched["densify_interval"],
-                                   max_count=gaussian_cap(cfg, geo))
-        self.densifier = PGADensifier(dcfg, seed=cfg.schedule.seed)
+        # The config's window and cap are the paper's; this run's depend on its length and
+        # grid: the densifier's window (its state), the settings stay as written.
+        window = DensifyWindow(start=sched["densify_start"], stop=sched["densify_stop"],
+                               interval=sched["densify_interval"],
+                               max_count=gaussian_cap(cfg, geo))
+        self.densifier = PGADensifier(cfg.densify, seed=cfg.schedule.seed, window=window)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self._scheduled(self.iterations),
                                                 anneal=True)
 
@@ -479,7 +478,7 @@ class Trainer:
                    # wall clock of the earlier calls of a resumed run, to its checkpoint
                    # (0: not resumed); metrics.json's seconds include it
                    "resumed_seconds": self.resumed_seconds,
-                   "max_gaussians": self.densifier.config.max_count,
+                   "max_gaussians": self.densifier.window.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
                    "time_plan": self.time_plan,
                    # what the automatic fields resolved to (lab.staleness.stale_keys compares)
