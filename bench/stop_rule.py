@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mi_grg.lab.report import replay_early_stop  # noqa: E402
+from mi_grg.protocol.early_stop import replay as replay_early_stop  # noqa: E402
 from mi_grg.training.config import TrainConfig  # noqa: E402
 from mi_grg.protocol.early_stop import EarlyStopper  # noqa: E402
 

@@ -44,7 +44,7 @@ difference between "before" and "after" relative to each gradient's largest entr
 
 Writes docs/bench/train_step.{md,json} (with os.getloadavg() before and after each process).
 
-``--frozen``: the recorded step (``TrainConfig.frozen_step``, mi_grg.training.frozen_step)
+``--frozen``: the recorded step (``TrainConfig.frozen_step``, mi_grg.training.recording)
 against the traced one, in one process per (method, size, round) on the same state: after
 a warm-up (compilation, the recordings and their capacities), ``--blocks`` alternations of
 ``--iters`` traced pairs and ``--iters`` frozen pairs (iterations as Trainer.run composes
@@ -161,7 +161,7 @@ class _Step:
         import mitsuba as mi
         from mi_grg.data.simulate import default_geometry
         from mi_grg.training.config import make_config
-        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.densify import PGADensifier
         from mi_grg.training.graph import build_graph, graph_density_scale
         from mi_grg.training.optim import Adam
         self.raw, train = _load_state(method, n)
@@ -172,7 +172,11 @@ class _Step:
         self.iterations = iteration_rule(self.geo)
         self.targets = [mi.TensorXf(np.ascontiguousarray(t)) for t in train]
         self.optimizer = Adam.from_train_config(config, max_steps=self.iterations)
-        self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
+        try:    # a revision from before the one densification settings class
+            from mi_grg.training.densify import DensifyConfig
+            self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
+        except ImportError:
+            self.densifier = PGADensifier(config.densify, seed=cfg.seed)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.graph = self.ds = None
         if self.uses_graph:
@@ -396,27 +400,50 @@ def worker(method: str, n: int, iters: int, out: str) -> None:
 
 # ====================================================================== frozen vs traced
 def _frozen_adapter(step):
-    """A FrozenStep for ``step`` (the attributes FrozenStep.iteration reads of a Trainer)."""
-    import numpy as np
-    from mi_grg.training.frozen_step import FrozenStep
+    """A Recording (mi_grg.training.recording) of ``step``'s iteration."""
+    from mi_grg.training.recording import Recording
+    from mi_grg.training.step import StepConfig, TVTerm
     cfg = step.cfg
-    step._density_scale, step.said = step.ds, []
-    return FrozenStep(step.geo, step.extent, cfg.lambda_ssim, cfg.lambda_lap,
-                      log=step.said.append,
-                      tv=(cfg.lambda_tv * cfg.tv_every,
-                          np.minimum(cfg.tv_block, np.asarray(step.geo.nVoxel)),
-                          step.tv_extent))
+    step.said, step.view_arrays = [], {}
+    tv = TVTerm(cfg.lambda_tv * cfg.tv_every, tuple(int(b) for b in step.block),
+                float(step.tv_extent))
+    return Recording(StepConfig(step.geo, float(step.extent), cfg.lambda_ssim, tv,
+                                float(cfg.lambda_lap)), log=step.said.append)
+
+
+def _step_inputs(step, view, start):
+    """mi_grg.training.step.StepInputs of ``step``'s state (as Trainer._step_inputs)."""
+    import drjit as dr
+    from mi_grg.training.step import StepInputs, laplacian_weight, view_arrays
+    if view not in step.view_arrays:
+        step.view_arrays[view] = view_arrays(step.geo, view)
+    lap = None
+    if step.cfg.lambda_lap > 0 and step.graph is not None:
+        lap = laplacian_weight(step.cfg.lambda_lap, dr.width(step.raw["raw_densities"]))
+    return StepInputs(step.raw, step.view_arrays[view], step.targets[view], step.ds,
+                      step.graph, lap, start)
 
 
 def _frozen_run(step, fz, it):
-    """One iteration by the frozen step (traced where it hands it back): 1 if replayed."""
-    from mi_grg.training.trainer import laplacian_weight
+    """One iteration by the recorded step (traced where it hands it back), updated as
+    Trainer._step does: 1 if replayed."""
+    import drjit as dr
     view, start = step.draw(it)
-    done = fz.iteration(step, it, step.raw, view, start, laplacian_weight)
+    inputs = _step_inputs(step, view, start)
+    stats = step.densifier.recorded_inputs(dr.width(step.raw["raw_densities"]))
+    adam = step.optimizer.recorded_inputs(step.raw)
+    update = None if stats is None or adam is None else {"stats": stats, "adam": adam}
+    done = fz.step(inputs, update, (step.optimizer.betas, step.optimizer.eps))
     if done is None:
         step.run(view, start)
         return 0
-    step.raw = done[0]
+    out = done[0]
+    if update is None:
+        step.densifier.accumulate(out["gnorm"], visible=out["gnorm"] > 0)
+        step.raw = step.optimizer.step(step.raw, grads=out["grads"])
+    else:
+        step.densifier.add(out["stats"])
+        step.raw = step.optimizer.apply(out["raw"], out["m"], out["v"])
     return 1
 
 
@@ -447,17 +474,14 @@ def _frozen_equality(step, fz) -> dict:
     (relative to the loss / each gradient's largest entry)."""
     import numpy as np
     import drjit as dr
-    from mi_grg.training.trainer import laplacian_weight
     start = None
     if step.cfg.lambda_tv > 0:
         start = [int(min(s // 3, s - b)) for s, b in zip(step.geo.nVoxel, step.block)]
     loss, grads = step.run(3, start, update=False)
     for v in step.raw.values():
         dr.clear_grad(v)
-    n = dr.width(step.raw["raw_densities"])
     for _ in range(3):          # the first calls may overflow their capacity and re-record
-        out, key = fz.run(step.raw, 3, step.targets[3], step.graph, step.ds,
-                          laplacian_weight(step.cfg.lambda_lap, n), start)
+        out, key = fz.run(_step_inputs(step, 3, start))
         floss = fz.check(out, key)
         if floss is not None:
             break

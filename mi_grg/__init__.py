@@ -87,6 +87,7 @@ _LAZY = {
     "default_geometry": "mi_grg.data.simulate",
     "project": "mi_grg.core.projector",
     "project_dr": "mi_grg.core.projector",
+    "operator": "mi_grg.core.operators",
     "sart": "mi_grg.classical.iterative",
     "asd_pocs": "mi_grg.classical.iterative",
     "forward_project": "mi_grg.core.joseph",

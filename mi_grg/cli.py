@@ -3,13 +3,14 @@ their report, and demo."""
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import os
 import sys
 import time
 import zipfile
 from pathlib import Path
+
+from mi_grg.data.inputs import MAX_MESSAGE, describe_error, one_line  # noqa: F401  (public)
 
 
 def _parse_options(items) -> dict:
@@ -189,15 +190,10 @@ def _staged_run(args, formats, options) -> dict:
     complete (``mi_grg.data.outputs.staged``); with --resume it continues the run that
     stopped (its temporary's checkpoint), else --out's own checkpoint."""
     from mi_grg.data import outputs
-    source = outputs.resume_source(args.out, outputs.RECONSTRUCT) if args.resume else None
-    outputs.check_out(args.out, outputs.RECONSTRUCT, [args.data, args.config],
-                      keep=[source.parent] if source else [])
-    if args.resume:
-        if source is not None:
-            print(f"note: resuming from {source}, left by a run that stopped", file=sys.stderr)
-        options["resume"] = str(source if source is not None
-                                else Path(args.out) / outputs.RECONSTRUCT.resumable)
-    with outputs.staged(args.out, outputs.RECONSTRUCT, resumed=source) as tmp:
+    with outputs.staged_reconstruct(args.out, [args.data, args.config],
+                                    args.resume) as (tmp, checkpoint):
+        if checkpoint is not None:
+            options["resume"] = checkpoint
         return _run_method(args, tmp, formats, options, _raw_options(args.option))[1]
 
 
@@ -455,10 +451,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-#: Longest error line: a message quoting a huge value (an attribute, a key) is cut.
-MAX_MESSAGE = 400
-
-
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import mi_grg
@@ -473,7 +465,7 @@ def main(argv=None) -> int:
         message = e.code
     except (ValueError, OSError, EOFError, MemoryError, RecursionError,
             zipfile.BadZipFile) as e:
-        message = _describe(e)
+        message = describe_error(e)
     except KeyboardInterrupt:   # Ctrl-C: what was kept is said above; no traceback
         print(f"mi-grg {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -494,53 +486,6 @@ def _set_up(args, mi_grg, memory) -> None:
             raise ValueError(f"--variant {args.variant}: {e}") from None
     if args.command != "import" and getattr(args, "max_memory", None) is not None:
         memory.set_max_memory(args.max_memory)   # import checks its own sizes with it
-
-
-def one_line(message) -> str:
-    """Bad input (our errors name the field or file): one line of at most MAX_MESSAGE
-    characters, without any Python traceback a library embedded in it."""
-    from mi_grg.data.inputs import without_traceback
-    text = " ".join(without_traceback(str(message)).split())
-    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 4] + " ..."
-
-
-_ERRNO_EXPECTED = {errno.ENOTDIR: "expected a directory there, found a file",
-                   errno.EISDIR: "expected a file, found a directory",
-                   errno.EACCES: "expected permission to read or write it",
-                   errno.EPERM: "expected permission to read or write it",
-                   errno.EROFS: "expected a writable file system",
-                   errno.ENOSPC: "expected free disk space",
-                   errno.ENOENT: "expected it to exist",
-                   errno.EEXIST: "expected it not to exist yet"}
-
-
-def _zip_file(e) -> str:
-    """The file that zipfile was reading when it raised ``e`` (np.load of a .npz)."""
-    tb, name = e.__traceback__, None
-    while tb is not None:
-        zf = tb.tb_frame.f_locals.get("self")
-        if isinstance(zf, zipfile.ZipFile) and zf.filename:
-            name = zf.filename
-        tb = tb.tb_next
-    return name or "a .npz file"
-
-
-def _describe(e) -> str:
-    """One line for an exception from bad input: the file or option, and what was
-    expected."""
-    if isinstance(e, zipfile.BadZipFile):
-        return f"{_zip_file(e)}: not a readable .npz archive ({e}; truncated?)"
-    if isinstance(e, MemoryError):
-        return f"out of memory ({e or 'MemoryError'}); use smaller sizes"
-    if isinstance(e, OSError) and e.filename is not None:
-        where = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 else "")
-        why = _ERRNO_EXPECTED.get(e.errno, "")
-        return f"{where}: {e.strerror or e}" + (f"; {why}" if why else "")
-    if isinstance(e, EOFError):
-        return f"a file ended too early ({e or 'EOFError'}; truncated?)"
-    if isinstance(e, RecursionError):
-        return "an input is nested too deeply to read (RecursionError)"
-    return str(e)
 
 
 if __name__ == "__main__":

@@ -6,8 +6,10 @@
 
 Exits 1 when a target fails.
 
-Targets: README.md <= 150 lines; no function in mi_grg/ (plugins/ included, installed as
-mi_grg.plugins) over 80 lines; no import cycle between mi_grg's modules (every import,
+Targets: README.md <= 150 lines; no module in mi_grg/ or plugins/ over 600 lines; no
+function in mi_grg/ (plugins/ included, installed as mi_grg.plugins) over 80 lines;
+exactly one function in mi_grg/ calls ``projection_loss`` (the training step is written
+once: mi_grg.training.step); no import cycle between mi_grg's modules (every import,
 function-local ones included); at most 5 comment / docstring lines that carry history
 (a commit hash, a date, an issue or session number, a measured dB / ms / s figure): such
 figures belong in docs/benchmarks.md, the comment keeps the reason.
@@ -27,6 +29,9 @@ PACKAGES = {"mi_grg": ROOT / "mi_grg", "mi_grg.plugins": ROOT / "plugins"}
 MAX_README_LINES = 150
 MAX_FUNCTION_LINES = 80
 MAX_HISTORY_LINES = 5
+MAX_MODULE_LINES = 600
+# the one function that composes the training loss (every iteration calls it)
+LOSS_FUNCTION = "projection_loss"
 
 # a word of 7-40 hex digits with at least one digit and one letter (a commit hash), a date,
 # an issue / session number, or a measured figure in dB, ms or s
@@ -69,6 +74,39 @@ def long_functions(limit: int = MAX_FUNCTION_LINES, packages=None) -> list:
                             found.append((path, child.lineno, name, length))
                     name += "."
                 stack.append((child, name))
+    return sorted(found, key=lambda f: (str(f[0]), f[1]))
+
+
+def long_modules(limit: int = MAX_MODULE_LINES, packages=None) -> list:
+    """[(path, lines)] of modules longer than ``limit`` lines."""
+    found = []
+    for path in modules(packages).values():
+        n = len(path.read_text().splitlines())
+        if n > limit:
+            found.append((path, n))
+    return found
+
+
+def callers(callee: str = LOSS_FUNCTION, packages=None) -> list:
+    """[(path, qualified name)] of the functions whose own body (nested functions apart)
+    calls ``callee`` by name or as an attribute (``losses.projection_loss(...)``)."""
+    found = []
+    for path in modules(packages).values():
+        tree = ast.parse(path.read_text(), str(path))
+        stack = [(tree, "", None)]
+        while stack:
+            node, prefix, owner = stack.pop()
+            for child in ast.iter_child_nodes(node):
+                name, own = prefix, owner
+                if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                    name = f"{prefix}{child.name}."
+                    own = None if isinstance(child, ast.ClassDef) else name[:-1]
+                elif isinstance(child, ast.Call) and own is not None:
+                    f = child.func
+                    called = f.id if isinstance(f, ast.Name) else getattr(f, "attr", None)
+                    if called == callee and (path, own) not in found:
+                        found.append((path, own))
+                stack.append((child, name, own))
     return sorted(found, key=lambda f: (str(f[0]), f[1]))
 
 
@@ -171,13 +209,20 @@ def main() -> int:
     packages = {"mi_grg": root / "mi_grg", "mi_grg.plugins": root / "plugins"}
     readme = len((root / "README.md").read_text().splitlines())
     longf = long_functions(packages=packages)
+    longm = long_modules(packages=packages)
+    loss = callers(packages=packages)
     cycles = import_cycles(packages)
     hist = history_lines(packages)
     rows = [("README.md lines", readme, MAX_README_LINES),
+            (f"modules over {MAX_MODULE_LINES} lines", len(longm), 0),
             (f"functions over {MAX_FUNCTION_LINES} lines", len(longf), 0),
             ("package import cycles", len(cycles), 0),
             ("comment / docstring lines carrying history", len(hist), MAX_HISTORY_LINES)]
     verbose = "-v" in sys.argv[1:]
+    for p, n in longm:
+        print(f"  long module: {p.relative_to(root)} ({n} lines)")
+    for p, name in loss:
+        print(f"  calls {LOSS_FUNCTION}: {p.relative_to(root)}:{name}")
     for f in longf:
         print(f"  long: {f[0].relative_to(root)}:{f[1]} {f[2]} ({f[3]} lines)")
     for c in cycles:
@@ -189,6 +234,10 @@ def main() -> int:
         passed = count <= limit
         ok &= passed
         print(f"{label:45s} {count:6d}  (target <= {limit})  {'PASS' if passed else 'FAIL'}")
+    passed = len(loss) == 1
+    ok &= passed
+    print(f"{'functions calling ' + LOSS_FUNCTION:45s} {len(loss):6d}  (target == 1)  "
+          f"{'PASS' if passed else 'FAIL'}")
     return 0 if ok else 1
 
 

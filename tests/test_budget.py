@@ -12,7 +12,7 @@ from mi_grg.training.budget import (MIN_ITERATIONS, REPLAN_SHARE, LoopPace, Prob
                                     plan_iterations, replan, replans_done, replans_of,
                                     rest_seconds)
 from mi_grg.training.config import ConfigError, make_config, read_config_xml
-from mi_grg.training.densify import DensifyConfig, PGADensifier
+from mi_grg.training.densify import DensifyWindow, PGADensifier
 from mi_grg.training.optim import Adam, AdamError
 from mi_grg.training.trainer import Trainer, _scaled
 
@@ -27,9 +27,8 @@ def test_loop_seconds_counts_what_the_loop_does(iterations):
     densification starts, the densifier's own densify iterations, the evaluations."""
     cfg = make_config("gr")
     s = _scaled(cfg, iterations)
-    dens = PGADensifier(dataclasses.replace(DensifyConfig.from_train_config(cfg),
-                                            start=s["densify_start"], stop=s["densify_stop"],
-                                            interval=s["densify_interval"]))
+    dens = PGADensifier(cfg.densify, window=DensifyWindow(
+        start=s["densify_start"], stop=s["densify_stop"], interval=s["densify_interval"]))
     n_dens = sum(dens.is_densify_iteration(it) for it in range(1, iterations + 1))
     window = iterations // 2
     n_eval = sum(1 for it in range(1, window + 1) if it % s["eval_every"] == 0) + 1
@@ -225,7 +224,7 @@ def test_the_plan_moves_with_densification_then_is_replanned_once_more(tiny_case
     for it, remaining, one, hundred in asked:
         assert 0 < remaining < 600 and 0 < one < hundred
     assert info["iterations_run"] == 400 and info["iterations_planned"] == 400
-    assert t.densifier.config.stop == final["at"]
+    assert t.densifier.window.stop == final["at"]
     assert t.optimizer.lr("positions", 400) == pytest.approx(0.1 * t.optimizer.lr0["positions"])
     assert t.views.iterations == 400 and replans_done(info["time_plan"])
 
@@ -258,7 +257,7 @@ def test_a_resumed_budget_run_keeps_its_plan(tiny_case, tmp_path, monkeypatch, c
     monkeypatch.setattr(budget, "replan", lambda it, remaining, price_rest: 700)
     t = Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
     assert t.state.iteration == 60 and t.iterations == 110
-    assert t.densifier.config.stop == 55 and t.optimizer.knots[-1][0] == 55
+    assert t.densifier.window.stop == 55 and t.optimizer.knots[-1][0] == 55
     assert t.optimizer.max_steps == 110 and t.views.iterations == 110
     knots = list(t.optimizer.knots)
     info = t.run()

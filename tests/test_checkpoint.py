@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mi_grg.training.config import make_config
-from mi_grg.training.densify import DensifyConfig, DensifyError, PGADensifier
+from mi_grg.training.densify import DensifyError, PGADensifier
 from mi_grg.protocol.early_stop import EarlyStopper
 from mi_grg.training.trainer import Trainer
 
@@ -25,14 +25,14 @@ OLD_OPTIONS = dict(iterations=60, seed=5, n_points=120, max_gaussians=800, eval_
 
 
 def test_densifier_state_round_trip(variant):
-    d = PGADensifier(DensifyConfig())
+    d = PGADensifier()
     assert d.state_dict() == {"grad_accum": None, "view_count": None}
     d.accumulate(mi.Float([0.5, 0.0, 2.0]), visible=mi.Bool([True, False, True]))
     d.accumulate(mi.Float([1.0, 3.0, 0.0]))
     st = d.state_dict()
     np.testing.assert_array_equal(st["grad_accum"], [1.5, 3.0, 2.0])
     np.testing.assert_array_equal(st["view_count"], [2.0, 1.0, 2.0])
-    e = PGADensifier(DensifyConfig())
+    e = PGADensifier()
     e.load_state_dict(st)
     np.testing.assert_array_equal(np.asarray(e.averaged_gradient()),
                                   np.asarray(d.averaged_gradient()))

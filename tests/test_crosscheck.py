@@ -11,8 +11,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_grg.evaluation.crosscheck import (binomial_z, compare, integrate_volume,
-                                          render_crosscheck, render_run, render_scene,
-                                          view_statistics)
+                                          render_crosscheck, render_scene, view_statistics)
+from mi_grg.evaluation.crosscheck_run import render_run
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.geometry import Geometry
 

@@ -8,7 +8,8 @@ import mi_grg  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mi_grg.training.densify import DensifyConfig, DensifyError, PGADensifier
+from mi_grg.training.config import Densification
+from mi_grg.training.densify import DensifyError, DensifyWindow, PGADensifier
 from mi_grg.core.gaussians import Gaussians, inverse_covariance
 from mi_grg.training.optim import Adam
 
@@ -37,9 +38,13 @@ def mass(d):
         d["scales"].astype(np.float64), axis=1)
 
 
-def densifier(**cfg):
-    cfg.setdefault("use_graph", False)
-    return PGADensifier(DensifyConfig(**cfg), seed=7)
+def densifier(max_count=None, **cfg):
+    cfg.setdefault("use_pga", False)
+    config = Densification(**cfg)
+    window = DensifyWindow.for_config(config)
+    if max_count is not None:
+        window.max_count = max_count
+    return PGADensifier(config, seed=7, window=window)
 
 
 def feed(dens, grads):
@@ -130,7 +135,7 @@ def test_deterministic_for_a_seed(variant, rng):
     raw = make_raw(rng.uniform(-0.5, 0.5, (n, 3)), np.full((n, 3), 0.3), np.ones(n))
 
     def run(seed):
-        d = PGADensifier(DensifyConfig(use_graph=False, bbox_margin=10.0), seed=seed)
+        d = PGADensifier(Densification(use_pga=False, bbox_margin=10.0), seed=seed)
         feed(d, np.ones(n))
         return raw_np(d.densify_and_prune(raw, None, bbox=BBOX, iteration=600)[0])
     a, b, c = run(1), run(1), run(2)
@@ -221,7 +226,7 @@ def test_graph_term_triggers_split_of_large_low_gradient_kernel(variant, rng):
     grads = np.full(n, 1e-5)                    # below tau_pos = 5e-5
     results = {}
     for use_graph in (False, True):
-        d = PGADensifier(DensifyConfig(use_graph=use_graph, bbox_margin=10.0), seed=0)
+        d = PGADensifier(Densification(use_pga=use_graph, bbox_margin=10.0), seed=0)
         feed(d, grads)
         gt = mi.Float(term.astype(np.float32)) if use_graph else None
         results[use_graph] = d.densify_and_prune(raw, None, graph_term=gt, bbox=BBOX)[1]
@@ -230,7 +235,7 @@ def test_graph_term_triggers_split_of_large_low_gradient_kernel(variant, rng):
     assert results[True]["n_split"] == 1
     assert results[True]["n_clone"] == n - 1
     # lambda_g scales the effect: with lambda_g = 1e-5 only g = 2e-5 < tau: nothing
-    d = PGADensifier(DensifyConfig(use_graph=True, lambda_g=1e-5), seed=0)
+    d = PGADensifier(Densification(use_pga=True, lambda_g=1e-5), seed=0)
     feed(d, grads)
     info = d.densify_and_prune(raw, None, graph_term=mi.Float(term.astype(np.float32)),
                                bbox=BBOX)[1]
@@ -242,7 +247,7 @@ def test_graph_term_triggers_split_of_large_low_gradient_kernel(variant, rng):
 
 
 def test_schedule(variant, rng):
-    d = PGADensifier(DensifyConfig(use_graph=False))
+    d = PGADensifier(Densification(use_pga=False))
     sched = [it for it in range(0, 16001, 50) if d.is_densify_iteration(it)]
     assert sched == list(range(600, 15000, 100))
     n = 4
@@ -280,7 +285,7 @@ def test_accumulate_multi_view_visibility(variant, rng):
     g = rng.uniform(0, 1, (views, n))
     vis = rng.random((views, n)) < 0.6
     vis[:, 4] = False                                  # never visible -> 0
-    d = PGADensifier(DensifyConfig(use_graph=False))
+    d = PGADensifier(Densification(use_pga=False))
     d.accumulate(mi.Float(g.reshape(-1).astype(np.float32)), mi.Bool(vis.reshape(-1)),
                  n_views=views)
     d.accumulate(mi.Float(g[0].astype(np.float32)), mi.Bool(vis[0]))   # one more view
@@ -300,9 +305,11 @@ def test_from_train_config_and_graph_module(variant, rng):
     cfg = config.TrainConfig(densify=config.Densification(
         densify_interval=50, densify_start=100, densify_stop=1000, densify_grad_threshold=3e-5,
         lambda_g=2e-4, use_pga=True, max_gaussians=1234))
-    dc = DensifyConfig.from_train_config(cfg)
-    assert (dc.interval, dc.start, dc.stop, dc.tau_pos, dc.lambda_g, dc.use_graph,
-            dc.max_count) == (50, 100, 1000, 3e-5, 2e-4, True, 1234)
+    d = PGADensifier(cfg.densify)           # the settings as written, and their window
+    assert d.config is cfg.densify
+    assert (d.window.interval, d.window.start, d.window.stop, d.window.max_count) == \
+        (50, 100, 1000, 1234)
+    assert d.is_densify_iteration(150) and not d.is_densify_iteration(125)
     n = 40
     pos = rng.uniform(-0.5, 0.5, (n, 3))
     rho = np.where(pos[:, 0] > 0, 1.0, 0.1)          # a density edge at x = 0
@@ -311,7 +318,7 @@ def test_from_train_config_and_graph_module(variant, rng):
     term = graph.mean_abs_density_difference(g, Gaussians.from_raw(raw).densities)
     term_np = np.asarray(term)
     assert term_np.max() > 0 and term_np.min() == 0    # edge nodes vs interior nodes
-    d = PGADensifier(DensifyConfig(use_graph=True), seed=0)
+    d = PGADensifier(Densification(use_pga=True), seed=0)
     feed(d, np.zeros(n))
     out, info = d.densify_and_prune(raw, None, graph_term=term, bbox=BBOX)
     # exactly the nodes with 1e-4 * term >= 5e-5 are cloned
@@ -372,7 +379,8 @@ def test_densification_at_a_new_count_reuses_the_kernels(variant, rng, kernel_ha
     raw = make_raw(rng.uniform(-0.6, 0.6, (n, 3)), rng.uniform(0.01, 0.3, (n, 3)),
                    rng.uniform(0.05, 1.0, n), rand_quats(rng, n))
     opt = Adam()
-    d = PGADensifier(DensifyConfig(use_graph=True, tau_pos=0.9, max_count=10 ** 6), seed=1)
+    d = PGADensifier(Densification(use_pga=True, densify_grad_threshold=0.9), seed=1,
+                     window=DensifyWindow(max_count=10 ** 6))
 
     def round_(raw, idx, d2):
         for v in raw.values():

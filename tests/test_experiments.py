@@ -11,8 +11,8 @@ import pytest
 import mi_grg
 from mi_grg.training.config import make_config
 from mi_grg.lab.plan import plan_experiment
-from mi_grg.lab.report import (PAPER_TABLE1, load_runs, replay_early_stop, seeds_table,
-                               summary_lines, write_report)
+from mi_grg.lab.report import PAPER_TABLE1, load_runs, seeds_table, summary_lines, write_report
+from mi_grg.protocol.early_stop import replay
 from mi_grg.lab.runner import expected_cost, run_experiment, stale_options
 from mi_grg.lab.suite import EXPERIMENTS, SuiteError, load_suite
 
@@ -366,18 +366,18 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
     # the early-stop rule replayed on a log: stop at the first value 0.5 % below the best
     # (noise 0: the fraction alone; the scatter margin: test_early_stop.py)
     its, vals = [10, 20, 30, 40, 50], [10.0, 12.0, 13.0, 12.94, 12.9]
-    assert replay_early_stop(its, vals, patience=1, noise=0) == (50, 30)   # 12.94 > 12.935
+    assert replay(its, vals, patience=1, noise=0) == (50, 30)   # 12.94 > 12.935
     # patience 2 needs two such values in a row; a dip that recovers is not one
     its2, vals2 = [10, 20, 30, 40, 50, 60, 70], [10.0, 13.0, 12.9, 12.95, 12.9, 12.8, 12.7]
-    assert replay_early_stop(its2, vals2, patience=2, noise=0) == (60, 20)
-    assert replay_early_stop(its2, vals2, patience=1, noise=0) == (30, 20)
+    assert replay(its2, vals2, patience=2, noise=0) == (60, 20)
+    assert replay(its2, vals2, patience=1, noise=0) == (30, 20)
     # evaluations before ``start`` (densification) are not judged
-    assert replay_early_stop(its2, vals2, start=40, patience=2, noise=0) == (70, 40)
+    assert replay(its2, vals2, start=40, patience=2, noise=0) == (70, 40)
     # the default margin is wider than 0.5 % where the values scatter more than that
     wobbly = [20.0, 21.0, 20.6, 21.4, 21.0, 21.8, 21.3, 21.1, 21.0, 22.0]
     w_its = list(range(10, 110, 10))
-    assert replay_early_stop(w_its, wobbly, patience=2, noise=0) == (80, 60)
-    assert replay_early_stop(w_its, wobbly) == (None, 100)
+    assert replay(w_its, wobbly, patience=2, noise=0) == (80, 60)
+    assert replay(w_its, wobbly) == (None, 100)
     falls = [10.0, 13.0, 12.9, 12.95, 12.9, 12.0, 11.9]      # a drop well beyond the scatter
     out = tmp_path / "res"
     d = _fake_run(out, "iterations", "c1", "gr-nostop", "HO", "gr", psnr_3d=20.0,
@@ -388,7 +388,7 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
             f"{i},{i / 10},0.1,{v},{v + 5},100\n" for i, v in zip(its2, falls)))
     md = write_report(out, tmp_path / "r.md").read_text()
     # the report replays the default rule (patience 2, margin >= 3 x the scatter)
-    assert replay_early_stop(its2, falls) == (60, 20)
+    assert replay(its2, falls) == (60, 20)
     assert "replayed_stop: 60" in md and "best_heldout_iteration: 20" in md
     assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
     assert len(load_runs(out)["iterations"]) == 1

@@ -15,7 +15,7 @@ from mi_grg.core.geometry import Geometry, GeometryError, circular_angles
 from mi_grg.core.joseph import back_project, forward_project
 from mi_grg.core.projector import project
 from mi_grg.data.orbits import half_fan, wobbling
-from test_frozen_step import one_thread  # noqa: F401  (fixture: one Dr.Jit thread)
+from test_recording import one_thread  # noqa: F401  (fixture: one Dr.Jit thread)
 from test_projector import as_arrays, quat_matrix, random_gaussians
 
 
@@ -184,7 +184,7 @@ def test_voxelizer_bounds_follow_the_volume_box(rng):
 def test_frozen_step_on_a_wobbling_orbit_equals_traced(one_thread):
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
-    from test_frozen_step import _assert_equal, _frozen_calls, _state
+    from test_recording import _assert_equal, _frozen_calls, _state
     base = default_geometry(n=16, det=24, views=6)
     test = default_test_angles(2)
     allv = wobbling(base.with_angles(np.concatenate([base.angles, test])))

@@ -196,7 +196,7 @@ def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):
     opts = {**TINY, "n_points": 300, "iterations": 120}
     t = Trainer(tiny_case, make_config("gr", max_gaussians_per_voxel=0.12, **opts),
                 progress=False)
-    assert t.densifier.config.max_count == 492
+    assert t.densifier.window.max_count == 492
     info = t.run()
     assert info["max_gaussians"] == 492
     assert info["n_gaussians"] <= 492
@@ -204,7 +204,7 @@ def test_densification_stops_at_the_voxel_scaled_cap(tiny_case):
     assert 470 <= peak <= 492            # reached it (pruning may take a few off after)
     free = Trainer(tiny_case, make_config("gr", max_gaussians_per_voxel=0, **opts),
                    progress=False)
-    assert free.densifier.config.max_count == 800
+    assert free.densifier.window.max_count == 800
     free.run()
     assert max(r["n_gaussians"] for r in free.state.log) > 492     # the cap did bind
 

@@ -233,24 +233,21 @@ def test_runs_with_the_old_split_are_stale():
 # ---------------------------------------------------------------------------- in training
 
 def spy_views(t: Trainer, monkeypatch):
-    """Record (iteration, trained view) and (iteration, evaluated views) of a run. The run
-    takes the traced step, whose projections a spy sees (the recorded step projects only
-    while recording; its equality with the traced one: test_frozen_step.py)."""
-    t.frozen = None
+    """Record (iteration, trained view) and (iteration, evaluated views) of a run: a spy
+    on the step's inputs, which name the drawn view (the refit's name a density scale)."""
     trained, evaluated = [], []
-    real_project = t._project
-    angles = list(np.asarray(t.case.geometry.angles))
+    real_inputs = t._step_inputs
 
-    def project(g, a, density_scale, means2d=None):
-        if means2d is not None:       # a training step projects one view with means2d
-            trained.append((t.state.iteration + 1, angles.index(float(np.asarray(a)[0]))))
-        return real_project(g, a, density_scale, means2d)
+    def step_inputs(raw, view, start=None, **kw):
+        if not kw:
+            trained.append((t.state.iteration + 1, view))
+        return real_inputs(raw, view, start, **kw)
     real_heldout = t._heldout_psnr
 
     def heldout(raw):
         evaluated.append((t.state.iteration, t.held_idx.tolist()))
         return real_heldout(raw)
-    monkeypatch.setattr(t, "_project", project)
+    monkeypatch.setattr(t, "_step_inputs", step_inputs)
     monkeypatch.setattr(t, "_heldout_psnr", heldout)
     return trained, evaluated
 

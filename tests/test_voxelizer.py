@@ -184,7 +184,7 @@ def test_packet_columns_match_brute_force(rng, monkeypatch):
 
 
 class _Caps:
-    """The column and slice lanes of a capacity plan (as frozen_step._PairCapacity)."""
+    """The column and slice lanes of a capacity plan (as step.PairCapacity)."""
 
     def __init__(self, cols, slices):
         self.cols, self.slices = cols, slices

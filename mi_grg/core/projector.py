@@ -77,15 +77,16 @@ import numpy as np
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.geometry import Geometry
 from mi_grg.core.lanes import PACKET
-from mi_grg.core.projector_chunks import PreparedChunk, expand_rows, plan_chunks, view_base
+from mi_grg.core.projector_chunks import (PreparedChunk, RowCapacity, expand_rows, plan_chunks,
+                                          view_base)
 from mi_grg.core.projector_inputs import ProjectorError, validate
 from mi_grg.core.projector_kernels import RecordSums, near_kernel, regular_kernel
 from mi_grg.core.projector_records import (DetectorConstants, RecordFrame, ViewFrameArrays,
                                            gaussian_arrays, near_params, regular_params)
 from mi_grg.core.view_frames import ViewFrames, view_frames
 
-__all__ = ["DEFAULT_EXTENT", "PACKET", "ProjectorError", "ViewFrames", "project", "project_dr",
-           "view_frames"]
+__all__ = ["DEFAULT_EXTENT", "PACKET", "ProjectorError", "ViewFrames", "prepare", "project",
+           "project_dr", "project_prepared", "view_frames"]
 
 DEFAULT_EXTENT = 4.5
 # Work sizes, read at call time (tests shrink them to exercise chunking and batching)
@@ -337,18 +338,47 @@ def project_dr(gaussians: Gaussians, geometry: Geometry, angles=None, extent: fl
         density_scale = mi.Float(density_scale)
     validate(gaussians, n, density_scale, means2d, nviews)
     fr = view_frames(geometry)
-    g = gaussians
     parts = []
     for v0, v1 in fr.groups():   # one run for a circular scan
         sub = fr if (v0, v1) == (0, nviews) else fr.select(slice(v0, v1))
-        setup = _ProjectionSetup(geometry, ViewFrameArrays(sub),
-                                 DetectorConstants(sub, geometry, extent), n, v1 - v0)
         md = means2d if (means2d is None or sub is fr) else dr.gather(
             mi.Vector2f, means2d, dr.arange(mi.UInt32, v0 * n, v1 * n))
-        parts.append(dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
-                               density_scale, md, setup))
+        parts.append(project_prepared(prepare(geometry, n, extent, frames=sub), gaussians,
+                                      density_scale, md))
     flat = parts[0] if len(parts) == 1 else dr.concat(parts)
     return mi.TensorXf(flat, shape=(nviews, nv, nu))
+
+
+def prepare(geometry: Geometry, n: int, extent: float = DEFAULT_EXTENT, view=None,
+            frames=None, rows=None) -> _ProjectionSetup:
+    """The setup of one projection of ``n`` Gaussians, as ``project_dr`` builds it, for a
+    caller that projects the same scan again and again (a training step): ``view`` one
+    view's frame arrays ({"e": 3 x 3, "o": 3 mi.Float}, and "det" where a per-view scan's
+    detector values differ, ``DetectorConstants.override``; None: every view of
+    ``frames``), ``frames`` the ViewFrames the views and detector constants come from
+    (None: ``view_frames(geometry)``; one run of equal detector values,
+    ``ViewFrames.groups``), ``rows`` (rows, near records): fixed lane capacities, a
+    recorded step's (no host read; the counts stay on the device in ``setup.caps``)."""
+    fr = view_frames(geometry) if frames is None else frames
+    views = ViewFrameArrays(fr) if view is None else ViewFrameArrays.of(view["e"], view["o"])
+    det = DetectorConstants(fr, geometry, float(extent))
+    if view is not None and "det" in view:
+        det.override(view["det"])
+    setup = _ProjectionSetup(geometry, views, det, n, fr.e_n.shape[0] if view is None else 1)
+    if rows is not None:
+        setup.caps = RowCapacity(*rows)
+    return setup
+
+
+def project_prepared(setup: _ProjectionSetup, gaussians: Gaussians, density_scale=None,
+                     means2d=None) -> "mi.Float":
+    """The differentiable projection (flat [view, v, u]) of ``prepare``'s setup; no input
+    checks (``project_dr`` has them, ``check`` here)."""
+    g = gaussians
+    if setup.n == 0:
+        return dr.zeros(mi.Float, setup.nviews * int(np.prod(setup.geometry.nDetector)))
+    return dr.custom(_ProjectOp, g.positions, g.scales, g.rotations, g.densities,
+                     density_scale, means2d, setup)
 
 
 def project(gaussians: Gaussians, geometry: Geometry, angles=None, extent: float = DEFAULT_EXTENT,

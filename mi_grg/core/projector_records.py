@@ -56,6 +56,13 @@ class DetectorConstants:
         self.npix = dr.opaque(mi.UInt32, stride * nv)
         self.npix_py = stride * nv      # floats per view of an internal image
 
+    def override(self, det) -> None:
+        """Take a per-view scan's detector values from ``det``, a float32 array holding
+        (h, h^2, a_u, a_v, du, dv) (``step.view_arrays``): width-1 gathers, so that a
+        recorded step reads them as inputs."""
+        vals = [dr.gather(mi.Float, det, mi.UInt32(k)) for k in range(6)]
+        self.h, self.h2, self.a_u, self.a_v, self.du, self.dv = vals
+
 
 class ViewFrameArrays:
     """Per-view frame vectors as Dr.Jit arrays (float32), indexed by global view id."""
@@ -64,6 +71,13 @@ class ViewFrameArrays:
         self.e = [[to_dr(mi.Float, axis[:, k]) for k in range(3)] for axis in (fr.e_n, fr.e_u, fr.e_v)]
         # origin coordinates in the view frame, in float64 before rounding
         self.o = [to_dr(mi.Float, np.sum(fr.origin * axis, 1)) for axis in (fr.e_n, fr.e_u, fr.e_v)]
+
+    @classmethod
+    def of(cls, e, o) -> "ViewFrameArrays":
+        """Frame arrays given as Dr.Jit arrays (e: 3 x 3, o: 3), e.g. a recording's inputs."""
+        fa = cls.__new__(cls)
+        fa.e, fa.o = e, o
+        return fa
 
 
 def gaussian_arrays(g: Gaussians, density_scale):

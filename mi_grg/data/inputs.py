@@ -1,12 +1,16 @@
 """Reading what a user hands over, within bounds: JSON and XML files that are too large or
 too deeply nested are refused in one line naming the file, before a parser spends minutes
 or gigabytes on them, and messages that embed a Python traceback (Mitsuba flattens a
-plugin's into its own error) are reduced to the error itself.
+plugin's into its own error) are reduced to the error itself; an exception from bad
+input becomes one line naming the file and what was expected (``describe_error``,
+``one_line``: the command line's error messages).
 """
 from __future__ import annotations
 
+import errno
 import json
 import re
+import zipfile
 from pathlib import Path
 
 #: Bounds of the XML files we read (scenes, training configs). A scene's longest
@@ -97,3 +101,53 @@ def without_traceback(text: str) -> str:
     error = _ERROR_NAME.search(rest)
     tail = rest[error.start():] if error else (rest.strip().splitlines() or [""])[-1]
     return " ".join(f"{text[:start]} {tail}".split())
+
+
+#: Longest error line: a message quoting a huge value (an attribute, a key) is cut.
+MAX_MESSAGE = 400
+
+
+def one_line(message) -> str:
+    """Bad input (our errors name the field or file): one line of at most MAX_MESSAGE
+    characters, without any Python traceback a library embedded in it."""
+    text = " ".join(without_traceback(str(message)).split())
+    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 4] + " ..."
+
+
+_ERRNO_EXPECTED = {errno.ENOTDIR: "expected a directory there, found a file",
+                   errno.EISDIR: "expected a file, found a directory",
+                   errno.EACCES: "expected permission to read or write it",
+                   errno.EPERM: "expected permission to read or write it",
+                   errno.EROFS: "expected a writable file system",
+                   errno.ENOSPC: "expected free disk space",
+                   errno.ENOENT: "expected it to exist",
+                   errno.EEXIST: "expected it not to exist yet"}
+
+
+def _zip_file(e) -> str:
+    """The file that zipfile was reading when it raised ``e`` (np.load of a .npz)."""
+    tb, name = e.__traceback__, None
+    while tb is not None:
+        zf = tb.tb_frame.f_locals.get("self")
+        if isinstance(zf, zipfile.ZipFile) and zf.filename:
+            name = zf.filename
+        tb = tb.tb_next
+    return name or "a .npz file"
+
+
+def describe_error(e) -> str:
+    """One line for an exception from bad input: the file or option, and what was
+    expected."""
+    if isinstance(e, zipfile.BadZipFile):
+        return f"{_zip_file(e)}: not a readable .npz archive ({e}; truncated?)"
+    if isinstance(e, MemoryError):
+        return f"out of memory ({e or 'MemoryError'}); use smaller sizes"
+    if isinstance(e, OSError) and e.filename is not None:
+        where = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 else "")
+        why = _ERRNO_EXPECTED.get(e.errno, "")
+        return f"{where}: {e.strerror or e}" + (f"; {why}" if why else "")
+    if isinstance(e, EOFError):
+        return f"a file ended too early ({e or 'EOFError'}; truncated?)"
+    if isinstance(e, RecursionError):
+        return "an input is nested too deeply to read (RecursionError)"
+    return str(e)

@@ -334,6 +334,23 @@ def staged(out, kind: Output, resumed=None):
         shutil.rmtree(consumed, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def staged_reconstruct(out, inputs, resume: bool = False):
+    """``staged`` for ``mi-grg reconstruct``: checks ``out`` against ``inputs`` (the data
+    set, the config file) and yields (the temporary to write the run into, the checkpoint
+    to resume from or None). With ``resume`` the run continues the one that stopped (its
+    temporary's checkpoint, said on stderr), else ``out``'s own checkpoint."""
+    source = resume_source(out, RECONSTRUCT) if resume else None
+    check_out(out, RECONSTRUCT, inputs, keep=[source.parent] if source else [])
+    checkpoint = None
+    if resume:
+        if source is not None:
+            print(f"note: resuming from {source}, left by a run that stopped", file=sys.stderr)
+        checkpoint = str(source if source is not None else Path(out) / RECONSTRUCT.resumable)
+    with staged(out, RECONSTRUCT, resumed=source) as tmp:
+        yield tmp, checkpoint
+
+
 def check_report_out(report, images, inputs, is_report, option: str = "--report") -> None:
     """A report file and its image folder may not be, hold or lie inside any of ``inputs``
     (what the runner wrote); an existing report file must be an earlier report

@@ -33,11 +33,13 @@ take two routes through scenes built here:
 
 Both media fill a ``cube`` with a ``null`` BSDF; the sensor is ``ct_scanner`` (one ray per
 pixel centre, film [views * v, u]).
+
+Where it lives: ``crosscheck_stats`` (the per-view and per-pixel statistics),
+``crosscheck_run`` (the scene of a finished gr / r2 run, ``mi-grg render --run``).
 """
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from pathlib import Path
@@ -48,6 +50,9 @@ import mitsuba as mi
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.core.geometry import Geometry
+
+from mi_grg.evaluation.crosscheck_stats import (CONFIDENCE, binomial_z,  # noqa: F401
+                                                compare, view_statistics)
 
 #: Largest number of (pixel, sample) lanes rendered in one ``mi.render`` pass.
 MAX_LANES = 1 << 24
@@ -202,28 +207,6 @@ def render_transmittance(scene, spp: int, seed: int = 0) -> np.ndarray:
     return acc / spp
 
 
-def compare(mc: np.ndarray, ref_t: np.ndarray, spp: int) -> dict:
-    """Error statistics of Monte Carlo transmittance ``mc`` against the exact ``ref_t``.
-
-    Standard errors are the Bernoulli ones of the reference, sqrt(T (1 - T) / spp) per
-    pixel; pixels with T = 1 (rays missing the object, error exactly 0) carry no
-    information and are left out of the z statistics."""
-    err = mc - ref_t
-    se = np.sqrt(np.clip(ref_t * (1 - ref_t), 0, None) / spp)
-    used = se > 0
-    n = max(int(used.sum()), 1)
-    se_mean = math.sqrt(float(np.sum(se[used] ** 2))) / n   # standard error of the mean error
-    z = err[used] / se[used]
-    return {"mean_error": float(err.mean()), "mean_abs_error": float(np.abs(err).mean()),
-            "rms_error": float(np.sqrt(np.mean(err ** 2))),
-            "mean_standard_error": float(se[used].mean()) if used.any() else 0.0,
-            "standard_error_of_mean": se_mean,
-            "z_mean": float(err[used].mean() / se_mean) if used.any() and se_mean > 0 else 0.0,
-            "z_rms": float(np.sqrt(np.mean(z ** 2))) if used.any() else 0.0,
-            "max_abs_z": float(np.abs(z).max()) if used.any() else 0.0,
-            "pixels_used": int(used.sum())}
-
-
 # ---------------------------------------------------------------- outputs
 def _film(stack: np.ndarray) -> np.ndarray:
     """[view, v, u] -> the film layout [view * v, u] (views stacked vertically)."""
@@ -355,8 +338,6 @@ SCENE_HINT = ("a render scene is a <sensor type=\"ct_scanner\"> with the scanned
               "inside it, <integrator type=\"volpath\"/> and <emitter type=\"constant\">; "
               "copy scenes/shepp_cone_volpath.xml")
 #: Confidence of each view's pass/fail (two-sided; see ``view_statistics``).
-CONFIDENCE = 0.999
-#: What the standard errors assume, verified on every render (``_render_checked``).
 ESTIMATOR = ("volpath on a pure absorber (albedo 0, spectrally flat extinction) does delta "
              "tracking: every sample is 1 (escaped to the emitter) or 0 (absorbed), so a "
              "pixel is a binomial count: SE = sqrt(T (1 - T) / spp) with T the reference; "
@@ -501,63 +482,6 @@ def _render_checked(scene, spp: int, seed: int, radiance: float) -> np.ndarray:
     return (first + rest * (spp - 1)) / spp
 
 
-def view_statistics(mc: np.ndarray, ref: np.ndarray, spp: int,
-                    confidence: float = CONFIDENCE) -> list:
-    """Per view: the transmittance error of ``mc`` [view, v, u] (the mean of ``spp`` 0/1
-    samples per pixel) against the exact ``ref``, and a pass/fail at ``confidence``.
-
-    A view passes when (a) its mean error, divided by its standard error (the binomial
-    sqrt(T (1 - T) / spp) per pixel, T = reference), is within the two-sided normal
-    quantile of ``confidence`` (a bias test), and (b) no pixel's count is improbable:
-    the smallest exact two-sided binomial p-value is >= (1 - confidence) / pixels
-    (Bonferroni; exact rather than normal because at small spp or T near 1 a single
-    absorbed sample is many normal sigmas). Pixels with T = 1 (rays that miss the object)
-    enter (b) only: any absorbed sample there fails the view."""
-    from scipy.stats import binom, norm
-    alpha = 1.0 - float(confidence)
-    z_crit = float(norm.ppf(1.0 - alpha / 2))
-    out = []
-    for k in range(mc.shape[0]):
-        m, t = np.asarray(mc[k], np.float64), np.clip(np.asarray(ref[k], np.float64), 0, 1)
-        err = m - t
-        var = t * (1 - t) / spp
-        used = var > 0
-        n_used = int(used.sum())
-        se_mean = math.sqrt(float(var[used].sum())) / n_used if n_used else 0.0
-        z = float(err[used].mean() / se_mean) if se_mean > 0 else 0.0
-        count = np.rint(m * spp)
-        p = np.minimum(1.0, 2 * np.minimum(binom.cdf(count, spp, t),
-                                           binom.sf(count - 1, spp, t)))
-        p_min = float(p.min())
-        out.append({
-            "rms_difference": float(np.sqrt(np.mean(err ** 2))),
-            "max_abs_difference": float(np.abs(err).max()),
-            "mean_difference": float(err.mean()),
-            # what the RMS difference should be at this spp if volpath and reference agree
-            "expected_rms_standard_error": float(np.sqrt(var.mean())),
-            "standard_error_of_mean_difference": se_mean,
-            "z": z,
-            "z_rms": float(np.sqrt(np.mean(err[used] ** 2 / var[used]))) if n_used else 0.0,
-            "min_pixel_p_value": p_min,
-            "pixels": int(m.size), "pixels_informative": n_used,
-            "pass": bool(abs(z) <= z_crit and p_min >= alpha / m.size)})
-    return out
-
-
-def binomial_z(mc: np.ndarray, ref: np.ndarray, spp: int) -> np.ndarray:
-    """Per pixel, (volpath - reference) / standard error as a binomial z-score: the normal
-    quantile of the mid-p value P(K < k) + P(K = k) / 2, K ~ Binomial(spp, T), k the
-    pixel's count. Where spp T (1 - T) is large this is (mc - T) / sqrt(T (1 - T) / spp);
-    where it is small (T near 0 or 1) it stays honest: one absorbed sample at T = 0.999
-    and 256 spp is z = -1.1, not the -8 of the normal formula. T = 1 with no absorbed
-    sample is 0; an impossible count (e.g. an absorbed sample at T = 1) is -inf / +inf."""
-    from scipy.stats import binom, norm
-    t = np.clip(np.asarray(ref, np.float64), 0, 1)
-    k = np.rint(np.asarray(mc, np.float64) * spp)
-    mid = binom.cdf(k - 1, spp, t) + 0.5 * binom.pmf(k, spp, t)
-    return norm.ppf(mid)
-
-
 def render_scene(path, spp: int, out_dir, seed: int = 0, confidence: float = CONFIDENCE,
                  extra: dict | None = None, shown=None) -> dict:
     """Render a scene file as written with Mitsuba's ``volpath`` and compare each view's
@@ -614,115 +538,3 @@ def _check_memory(geometry: Geometry, spp: int, path) -> None:
                   memory.projections(geometry.n_views, geometry.nDetector, copies=12,
                                      what="transmittance images")],
                  str(path), lower="lower the detector size (--det), the views or --spp")
-
-
-# ---------------------------------------------------------------- a finished gr / r2 run
-def run_scene(run_dir, out_dir, views: int = 2, det: int = 32, data=None) -> tuple:
-    """Write ``out_dir/scene.xml``: a volpath cross-check scene of a finished gr / r2 run.
-
-    The scanner is the run's (``metrics.json`` "geometry", in the rescaled units its
-    ``gaussians.npz`` lives in), with ``det`` detector rows (columns in proportion; the
-    detector's physical size is kept) and ``views`` of its test views spread evenly over
-    them. Test angles come from ``data`` (the data set directory) if given, else from
-    metrics.json (data sets that ``mi-grg simulate`` wrote record them), else evenly
-    spaced half a step off the circle's grid (stated in the returned info).
-    Returns (scene path, info dict). Raises FileNotFoundError / ValueError (one line,
-    naming what is missing and how to make it)."""
-    from mi_grg.data.scene import Scan, write_scan_xml
-    run = Path(run_dir)
-    how = (f"`mi-grg reconstruct DATA --method gr --out {run}` (or --method r2) writes it")
-    if not run.is_dir():
-        raise FileNotFoundError(f"run directory {run} does not exist; {how}")
-    npz = run / "gaussians.npz"
-    if not npz.is_file() and (run / "gaussians_before_voxel_step.npz").is_file():
-        raise FileNotFoundError(f"{run} scored a voxel grid (refine_output=voxels): its "
-                                "Gaussians, gaussians_before_voxel_step.npz, are not its "
-                                "result, so there is no result to render as Gaussians; "
-                                "rerun without refine_output=voxels to export it as "
-                                "Gaussians")
-    if not npz.is_file():
-        resume = (" (checkpoint.npz is there: finish the run with the same command and "
-                  "--resume)" if (run / "checkpoint.npz").is_file() else "")
-        raise FileNotFoundError(f"{run} has no gaussians.npz, so it is not a finished gr or "
-                                f"r2 run{resume}; {how}")
-    metrics_path = run / "metrics.json"
-    if not metrics_path.is_file():
-        raise FileNotFoundError(f"{run} has no metrics.json (the run's scanner geometry); {how}")
-    from mi_grg.data.inputs import read_json
-    metrics = read_json(metrics_path, "metrics.json")
-    g = metrics.get("geometry") if isinstance(metrics, dict) else None
-    if not isinstance(g, dict):
-        raise ValueError(f"{metrics_path} lacks 'geometry' (the scanner); {how}")
-    views, det = int(views), int(det)
-    if views < 1 or det < 1:
-        raise ValueError(f"--views and --det must be >= 1, got {views} and {det}")
-    given = None
-    if data is not None:
-        from mi_grg.data.dataset import load_case
-        case = load_case(data, rescale=False)
-        given = case.test_angles, f"data set {data}", case.geometry
-    Gaussians.load_npz(npz)   # checked here: a broken file is named as the run's
-    try:
-        geo, source, pick, extent = _run_geometry(metrics, g, views, det, given)
-    except (TypeError, ValueError, AttributeError, KeyError, IndexError) as e:
-        named = f"{type(e).__name__}: " if isinstance(e, (KeyError, IndexError)) else ""
-        raise ValueError(f"{metrics_path}: {named}{e}") from None
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    scan = Scan(geometry=geo, object={"type": "gaussian_medium", "extent": extent,
-                                      "filename": os.path.relpath(npz.resolve(), out.resolve())},
-                integrator={"type": "volpath"},
-                other=[{"type": "constant", "radiance": 1.0}])
-    path = write_scan_xml(scan, out / "scene.xml")
-    info = {"run": str(run), "method": metrics.get("method"), "angles_from": source,
-            "test_view_indices": pick.astype(int).tolist()}
-    return path, info
-
-
-def _run_geometry(metrics: dict, g: dict, views: int, det: int, given) -> tuple:
-    """(geometry of the cross-check in the run's training frame, where its angles come
-    from, the test views picked, the run's truncation extent) from a run's metrics.json
-    (``g``: its "geometry"); ``given``: (test angles, source, geometry) of a data set, or
-    None; a per-view run needs the data set (its test views' vectors)."""
-    from mi_grg.data.simulate import default_test_angles
-    if g.get("per_view") and given is None:
-        raise ValueError("the run's scan is per-view: pass --data DIR (the data set, whose "
-                         "test views carry their vectors)")
-    if given is not None:
-        angles, source = given[:2]
-    elif (metrics.get("data") or {}).get("scene", {}).get("test_angles"):
-        angles, source = metrics["data"]["scene"]["test_angles"], "metrics.json (data.scene)"
-    else:
-        angles = default_test_angles(max(int(g.get("n_test_angles") or 0), views))
-        source = ("evenly spaced (the run does not record its test angles; --data DIR "
-                  "takes the data set's)")
-    angles = np.asarray(angles, np.float64).reshape(-1)
-    if angles.size == 0:
-        raise ValueError(f"no test angles in {source}; pass --data DIR of a data set with "
-                         "test views")
-    pick = np.unique(np.round(np.linspace(0, angles.size - 1, min(views, angles.size))))
-    # the Gaussians live in the rescaled frame that training used (lengths x scene_scale)
-    geo = Geometry.from_scanner_dict(g, angles[pick.astype(int)]).scaled(
-        float(g.get("scene_scale", 1.0)))
-    nv, nu = geo.nDetector
-    small = (det, max(1, round(det * nu / nv)))
-    vec = None
-    if given is not None and given[2].per_view:
-        # the data set's rows of the picked views, in the training frame, pixels resized
-        vec = given[2].scaled(float(g.get("scene_scale", 1.0))).view_vectors(
-            angles[pick.astype(int)])
-        vec[:, 6:9] *= nu / small[1]
-        vec[:, 9:12] *= nv / small[0]
-    geo = geo.replace(nDetector=small, vectors=vec)
-    # the truncation extent the run trained with (the projector's 4.5 before runs recorded it)
-    from mi_grg.core.projector import DEFAULT_EXTENT
-    extent = float((metrics.get("method_info") or {}).get("extent", DEFAULT_EXTENT))
-    return geo, source, pick, extent
-
-
-def render_run(run_dir, spp: int, out_dir, views: int = 2, det: int = 32, data=None,
-               seed: int = 0, confidence: float = CONFIDENCE, shown=None) -> dict:
-    """``render_scene`` of the scene ``run_scene`` builds for a finished gr / r2 run."""
-    path, info = run_scene(run_dir, out_dir, views=views, det=det, data=data)
-    return render_scene(path, spp, out_dir, seed=seed, confidence=confidence, extra=info,
-                        shown=shown)

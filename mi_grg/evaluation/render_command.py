@@ -43,15 +43,16 @@ def render_command(args) -> int:
     spp = 256 if args.spp is None else args.spp
     from mi_grg.data import outputs
     from mi_grg.evaluation import crosscheck as cc
+    from mi_grg.evaluation.crosscheck_run import render_run
     outputs.check_out(args.out, outputs.RENDER, [args.scene, args.run, args.data])
     with outputs.staged(args.out, outputs.RENDER) as tmp:
         if args.scene is not None:
             res = cc.render_scene(args.scene, spp, tmp, seed=args.seed,
                                   confidence=args.confidence, shown=args.out)
         else:
-            res = cc.render_run(args.run, spp, tmp, views=args.views or 2,
-                                det=args.det or 32, data=args.data, seed=args.seed,
-                                confidence=args.confidence, shown=args.out)
+            res = render_run(args.run, spp, tmp, views=args.views or 2,
+                             det=args.det or 32, data=args.data, seed=args.seed,
+                             confidence=args.confidence, shown=args.out)
     print(f"volpath ({res['spp']} spp) vs {res['reference']}, {res['confidence']:.1%} "
           "confidence per view:")
     for k, v in enumerate(res["views"]):

@@ -5,8 +5,9 @@ The paper evaluates PSNR every 500 iterations and stops "if the PSNR decreases b
 of several small drops also stops the run; the caller keeps a state (see below).
 
 ``patience`` is the number of evaluations in a row that must lie below that margin
-(1 = the paper's rule as written). At our scaled schedules (12 evaluations in 1500
-iterations rather than 60 in 30k) the held-out PSNR still rises late in training and
+(1 = the paper's rule as written). At our scaled schedules (an evaluation every 125
+iterations up to 7500 iterations, e.g. 24 in a 64^3 run's 3000, rather than 60 in 30k)
+the held-out PSNR still rises late in training and
 wobbles around that trend by about the margin itself, so a single dip ended runs that
 recovered at the next evaluation (docs/benchmarks.md, "Measurements behind defaults").
 The default is 2 (``STOP_RULE``).
@@ -170,3 +171,22 @@ class EarlyStopper:
         self.kept_iteration = int(state.get("kept_iteration", self.best_iteration))
         # checkpoints from before the scatter margin: the judged evaluations are all known
         self.seen = [tuple(x) for x in state.get("seen", state["history"])]
+
+
+def replay(iterations, values, drop=None, patience=None, start=0, noise=None):
+    """(iteration at which ``EarlyStopper(drop, patience, noise)`` would stop on a logged
+    series of watched values (None entries skipped), or None; the best iteration).
+    ``drop``, ``patience`` and ``noise`` default to ``STOP_RULE``'s (TrainConfig's
+    defaults). As in training, only evaluations at iterations >= ``start`` (the end of
+    densification) are judged; the earlier ones inform the noise margin."""
+    st = EarlyStopper(drop=STOP_RULE.drop if drop is None else drop,
+                      patience=STOP_RULE.patience if patience is None else patience,
+                      noise=STOP_RULE.noise if noise is None else noise)
+    for it, v in zip(iterations, values):
+        if v is None:
+            continue
+        if it < start:
+            st.observe(int(it), v)
+        elif st.update(int(it), v) == "stop":
+            return int(it), st.best_iteration
+    return None, st.best_iteration

@@ -39,7 +39,10 @@ ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget"
                "frozen_step": False, "refine": "none",
                # before it, the schedule stretched to the run's count: the same as today's
                # None wherever the count was at most the rule's (staleness._auto_changed)
-               "horizon": None}
+               "horizon": None,
+               # R2-Gaussian's rules, constants of the densifier before they were settings
+               "clone_scale_fraction": 0.1, "split_scale_factor": 1.6, "min_density": 1e-5,
+               "bbox_margin": 0.0}
 
 
 def upgrade_config_dict(values: dict) -> dict:

@@ -148,9 +148,11 @@ class Graph:
 
 @dataclass
 class Densification:
-    """PGA densification (Sec. 3.3.2). The window (densify_start/stop/interval, and the
-    protocol's eval_every) is the paper's for 30k iterations and is scaled to the run's
-    length."""
+    """PGA densification (Sec. 3.3.2): the one set of its settings, which
+    ``mi_grg.training.densify.PGADensifier`` reads as they are (gsplat's strategy
+    dataclass). The window (densify_start/stop/interval, and the protocol's eval_every)
+    is the paper's for 30k iterations; a run scales it to its length, and the cap to its
+    grid, in the densifier's ``DensifyWindow`` (state, not settings)."""
     use_pga: bool = True           # graph term in the densification gradient
     lambda_g: float = 1e-4         # paper's; at 64^3 its term is small against the
                                    # gradient term, so PGA barely changes densification
@@ -164,6 +166,11 @@ class Densification:
                                    # cap. Why: past about half the voxel count the extra
                                    # Gaussians cannot add detail the grid resolves, only
                                    # time (docs/benchmarks.md)
+    # R2-Gaussian's rules (its defaults):
+    clone_scale_fraction: float = 0.1  # clone if max scale <= this x volume size, else split
+    split_scale_factor: float = 1.6    # a split's children scales = parent / this
+    min_density: float = 1e-5          # prune below (R2's density_min_threshold)
+    bbox_margin: float = 0.0           # prune outside the bbox enlarged by this x its size
 
 
 @dataclass
@@ -177,7 +184,7 @@ class Losses:
                                    # rasterisers; it needs (3/4.5)^3 = 0.3x the voxel pairs
     tv_every: int = 2              # TV on every n-th iteration only, weighted n x lambda_tv:
                                    # the same expected gradient (the block is random anyway)
-                                   # for half the TV cost (docs/benchmarks.md)
+                                   # for 1/n of the TV cost (bench/train_step.py times it)
 
 
 @dataclass
@@ -246,7 +253,7 @@ class Run:
                                    # iteration_rule (mi_grg.training.budget); None: no budget
     frozen_step: bool = True       # record the iteration once with dr.freeze and replay
                                    # it (no Python tracing per iteration;
-                                   # mi_grg.training.frozen_step): the same results, less
+                                   # mi_grg.training.recording): the same results, less
                                    # host time, which is most of a GPU's iteration
                                    # (docs/benchmarks.md, "On a GPU"); false: traced
 
@@ -319,6 +326,8 @@ def _validate(c: dict) -> None:
               and v is not None and v < 0]
     if nonneg:
         raise ConfigError(f"must be >= 0: {', '.join(nonneg)}")
+    if not c["split_scale_factor"] > 0:
+        raise ConfigError(f"split_scale_factor must be > 0, got {c['split_scale_factor']}")
     if c["k"] < 1:
         raise ConfigError("k must be >= 1")
     if not 0 < c["lr_final_ratio"] <= 1:
@@ -348,7 +357,7 @@ def _validate(c: dict) -> None:
         raise ConfigError(f"keep_state must be one of {', '.join(KEEP_STATES)}, "
                           f"got {c['keep_state']!r}")
     zero = [n for n in ("eval_every", "densify_interval", "tv_every",
-                        "stop_patience") if c[n] < 1]
+                        "stop_patience", "max_gaussians") if c[n] < 1]
     if zero:
         raise ConfigError(f"must be >= 1 (iterations or evaluations): {', '.join(zero)}")
 

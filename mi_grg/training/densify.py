@@ -11,14 +11,14 @@ term added to the densification gradient. Every ``interval`` iterations in the w
    densification (0 if never visible). The second is PGA's graph term, computed by the
    caller (``mi_grg.training.graph.mean_abs_density_difference``) on the current graph; it is
    added once to the view average, which equals the paper's per-view sum
-   (Eq. 16) averaged over views. ``use_graph=False`` drops it (R2-Gaussian).
-2. Candidates: g_i >= tau_pos. Default tau_pos = 5e-5, R2-Gaussian's
-   ``densify_grad_threshold``: it assumes the 3DGS/R2 convention for mu2d, i.e. the
+   (Eq. 16) averaged over views. ``use_pga=False`` drops it (R2-Gaussian).
+2. Candidates: g_i >= tau_pos (``densify_grad_threshold``, default 5e-5, R2-Gaussian's
+   ``densify_grad_threshold``): it assumes the 3DGS/R2 convention for mu2d, i.e. the
    gradient w.r.t. the projected centre in NDC-like detector coordinates of range [-1, 1]
    (d/d ndc = n/2 d/d pixel). The projector's gradient must be expressed in the same
    unit for the default to mean the same thing.
 3. Cap: each candidate adds exactly one Gaussian (a clone adds a copy; a split replaces
-   the parent by two children). If N + #candidates > max_count, only the
+   the parent by two children). If N + #candidates > max_count (the window's cap), only the
    max(max_count - N, 0) candidates with the largest g_i are densified (ties: lower index
    first). R2-Gaussian instead skips densification entirely once N >= max_count; ours is
    the same at N >= max_count and degrades gracefully below it.
@@ -53,13 +53,14 @@ The caller must rebuild its kNN graph after a densification step (the set change
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, asdict
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_grg.core.gaussians import Gaussians, rotation_matrix
+from mi_grg.training.config import Densification
 from mi_grg.training.optim import Adam
 
 RAW_KEYS = ("positions", "raw_scales", "raw_rotations", "raw_densities")
@@ -70,47 +71,36 @@ class DensifyError(ValueError):
 
 
 @dataclass
-class DensifyConfig:
-    """Densification hyperparameters (defaults: R2-Gaussian's / the paper's)."""
-
-    interval: int = 100               # densify every `interval` iterations ...
-    start: int = 500                  # ... when start < iteration < stop
+class DensifyWindow:
+    """A run's densification window and cap (explicit state beside the settings): densify
+    every ``interval`` iterations when start < iteration < stop, up to ``max_count``
+    Gaussians. ``for_config``: the settings' own (unscaled) window and cap; a trainer
+    scales them to its run (``mi_grg.training.schedule``) and a time budget may end the
+    window earlier."""
+    start: int = 500
     stop: int = 15000
-    tau_pos: float = 5e-5             # gradient threshold (R2's densify_grad_threshold)
-    lambda_g: float = 1e-4            # weight of the graph term (paper)
-    use_graph: bool = True            # PGA on; False: R2-Gaussian's plain average
-    clone_scale_fraction: float = 0.1  # clone if max scale <= this x volume size
-    split_scale_factor: float = 1.6   # children scales = parent / this (0.8 x 2 children)
-    min_density: float = 1e-5         # prune below (R2's density_min_threshold)
-    bbox_margin: float = 0.0          # prune outside bbox enlarged by this x its size
-    max_count: int = 500_000          # cap on the number of Gaussians (R2's default)
-
-    def __post_init__(self):
-        if self.interval < 1:
-            raise DensifyError(f"interval must be >= 1, got {self.interval}")
-        for name in ("tau_pos", "lambda_g", "clone_scale_fraction", "min_density",
-                     "bbox_margin"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise DensifyError(f"{name} must be finite and >= 0, got {v}")
-        if not (math.isfinite(self.split_scale_factor) and self.split_scale_factor > 0):
-            raise DensifyError(f"split_scale_factor must be > 0, got {self.split_scale_factor}")
-        if self.max_count < 1:
-            raise DensifyError(f"max_count must be >= 1, got {self.max_count}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+    interval: int = 100
+    max_count: int = 500_000
 
     @classmethod
-    def from_train_config(cls, cfg) -> "DensifyConfig":
-        """From a ``mi_grg.training.config.TrainConfig`` (its field names differ); other fields
-        keep their defaults. The schedule and ``max_count`` are the config's as written:
-        the trainer scales the window to the run's length and lowers the cap to
-        ``mi_grg.training.trainer.gaussian_cap`` (``max_gaussians_per_voxel`` needs the grid)."""
-        return cls(interval=cfg.densify.densify_interval, start=cfg.densify.densify_start,
-                   stop=cfg.densify.densify_stop, tau_pos=cfg.densify.densify_grad_threshold,
-                   lambda_g=cfg.densify.lambda_g, use_graph=cfg.densify.use_pga,
-                   max_count=cfg.densify.max_gaussians)
+    def for_config(cls, config: Densification) -> "DensifyWindow":
+        return cls(config.densify_start, config.densify_stop, config.densify_interval,
+                   config.max_gaussians)
+
+
+def _check(config: Densification, window: DensifyWindow) -> None:
+    """The settings the densifier uses, each error naming its field."""
+    if window.interval < 1:
+        raise DensifyError(f"interval must be >= 1, got {window.interval}")
+    for name in ("densify_grad_threshold", "lambda_g", "clone_scale_fraction", "min_density",
+                 "bbox_margin"):
+        v = getattr(config, name)
+        if not (math.isfinite(v) and v >= 0):
+            raise DensifyError(f"{name} must be finite and >= 0, got {v}")
+    if not (math.isfinite(config.split_scale_factor) and config.split_scale_factor > 0):
+        raise DensifyError(f"split_scale_factor must be > 0, got {config.split_scale_factor}")
+    if window.max_count < 1:
+        raise DensifyError(f"max_count must be >= 1, got {window.max_count}")
 
 
 def densify_iterations(start: int, stop: int, interval: int, last: int) -> range:
@@ -201,8 +191,11 @@ class PGADensifier:
     save and restore them (checkpoints).
     """
 
-    def __init__(self, config: DensifyConfig | None = None, seed: int = 0):
-        self.config = config or DensifyConfig()
+    def __init__(self, config: Densification | None = None, seed: int = 0,
+                 window: DensifyWindow | None = None):
+        self.config = config if config is not None else Densification()
+        self.window = window if window is not None else DensifyWindow.for_config(self.config)
+        _check(self.config, self.window)
         self.seed = int(seed)
         self.grad_accum = None
         self.view_count = None
@@ -275,6 +268,21 @@ class PGADensifier:
             self.grad_accum, self.view_count = acc, cnt
         dr.eval(self.grad_accum, self.view_count)
 
+    def recorded_inputs(self, n: int):
+        """The statistics' inputs of a recorded step for N Gaussians (the accumulators,
+        zeroed on the first call as ``accumulate`` does), or None where they do not match
+        N (``accumulate`` then raises its error)."""
+        if self.grad_accum is None:
+            self.reset(n)
+        if self.size != n:
+            return None
+        return {"grad_accum": self.grad_accum, "view_count": self.view_count}
+
+    def add(self, stats) -> None:
+        """Take one view's statistics added elsewhere (a recorded step's ``add_one_view``
+        of ``recorded_inputs``): (grad_accum, view_count)."""
+        self.grad_accum, self.view_count = stats
+
     def averaged_gradient(self) -> "mi.Float":
         """Mean gradient norm over the views that saw each Gaussian (0 if none)."""
         if self.grad_accum is None:
@@ -285,10 +293,10 @@ class PGADensifier:
     def augmented_gradient(self, graph_term=None) -> "mi.Float":
         """The densification score g_i (module docstring, step 1)."""
         g = self.averaged_gradient()
-        if not self.config.use_graph:
+        if not self.config.use_pga:
             return g
         if graph_term is None:
-            raise DensifyError("use_graph=True needs graph_term = mean |rho_i - rho_j| over "
+            raise DensifyError("use_pga=True needs graph_term = mean |rho_i - rho_j| over "
                                "each Gaussian's graph neighbours (mi.Float [N])")
         t = mi.Float(graph_term)
         if dr.width(t) != dr.width(g):
@@ -297,8 +305,8 @@ class PGADensifier:
 
     # ------------------------------------------------------------------ schedule
     def is_densify_iteration(self, iteration: int) -> bool:
-        c = self.config
-        return iteration in densify_iterations(c.start, c.stop, c.interval, iteration)
+        w = self.window
+        return iteration in densify_iterations(w.start, w.stop, w.interval, iteration)
 
     def step(self, iteration: int, raw: dict, optimizer: Adam | None, graph_term=None,
              bbox=None, seed: int | None = None):
@@ -309,7 +317,7 @@ class PGADensifier:
             raw: raw parameters (``Gaussians.to_raw()`` keys), width N.
             optimizer: Adam whose state rows follow the Gaussians (or None).
             graph_term: mi.Float [N], mean |rho_i - rho_j| over graph neighbours (needed
-                when use_graph).
+                when use_pga).
             bbox: volume bounding box [[xmin, ymin, zmin], [xmax, ymax, zmax]]
                 (``Geometry.bbox()``); required.
             seed: overrides the constructor's seed for the split samples.
@@ -374,9 +382,9 @@ class PGADensifier:
         at most up to the cap; small ones are cloned, large ones split."""
         c = self.config
         score = self.augmented_gradient(graph_term)
-        cand = score >= c.tau_pos
+        cand = score >= c.densify_grad_threshold
         n_cand = int(dr.count(cand)[0])
-        budget = max(c.max_count - n, 0)
+        budget = max(self.window.max_count - n, 0)
         capped = n_cand > budget
         if capped:
             cand = self._top_candidates(score, cand, budget)

@@ -234,6 +234,36 @@ class Adam:
             out[name] = new
         return out
 
+    def recorded_inputs(self, params: dict):
+        """Adam's inputs of a recorded step (``mi_grg.training.step.recorded_step``) for
+        ``params``: the moments and this update's opaque scalars, or None where the update
+        stays traced (the per-step finite check reads the host; an unknown group or a
+        state of another width lets ``step`` raise its error)."""
+        n = {dr.width(p) for p in params.values()}
+        if self.check_finite or set(params) - set(self.lr0) or len(n) != 1:
+            return None
+        states = {name: self.group_state(name, p) for name, p in params.items()}
+        if any(dr.width(st.m) not in n for st in states.values()):
+            return None
+        scalars = {name: self.step_scalars(name, st.step + 1) for name, st in states.items()}
+        return {"m": {k: st.m for k, st in states.items()},
+                "v": {k: st.v for k, st in states.items()},
+                "step_size": {k: dr.opaque(mi.Float, a) for k, (a, _) in scalars.items()},
+                "inv_bc2": {k: dr.opaque(mi.Float, b) for k, (_, b) in scalars.items()}}
+
+    def apply(self, new: dict, m: dict, v: dict) -> dict:
+        """Take one update computed elsewhere (a recorded step's, from
+        ``recorded_inputs``): each group's step count advances and its moments become
+        ``m``, ``v``. Returns the new parameters, gradients enabled (as ``step``)."""
+        out = {}
+        for name, p in new.items():
+            st = self.state[name]
+            st.step += 1
+            st.m, st.v = m[name], v[name]
+            out[name] = p
+            dr.enable_grad(p)
+        return out
+
     def group_state(self, name: str, p) -> GroupState:
         """Group ``name``'s state, created (zero moments like ``p``) on its first step."""
         st = self.state.get(name)
@@ -322,7 +352,7 @@ class Adam:
 def adam_update(p, g, m, v, betas, eps: float, step_size, inv_bc2):
     """One group's Adam update: (new parameter, detached; m; v) from the gradient ``g``,
     the moments and the step's opaque scalars (``Adam.step_scalars``). ``Adam.step`` and
-    the recorded training step (mi_grg.training.frozen_step) both use it."""
+    the recorded training step (mi_grg.training.step.recorded_step) both use it."""
     b1, b2 = betas
     m = type(p)(dr.fma(m, b1, (1.0 - b1) * g))
     v = type(p)(dr.fma(v, b2, (1.0 - b2) * dr.square(g)))

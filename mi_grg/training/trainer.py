@@ -3,8 +3,9 @@
     FDK of the fitting views -> De-Init (or plain FDK init for R2) -> per iteration: one
     view's projection loss (L1 + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
     block (every ``tv_every``-th iteration, weighted ``tv_every`` x) + lambda_lap graph
-    Laplacian -> Adam -> PGA densification every 100 iterations
-    (graph rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
+    Laplacian -> Adam -> PGA densification every ``densify_interval`` iterations inside
+    its window (the paper's 100 of 30k, scaled to the run: 25 up to 7500 iterations; graph
+    rebuilt after each) -> held-out-view PSNR every ``eval_every`` iterations ->
     early stop, keeping the latest state within the stop margin of the best (or the best:
     ``keep_state``) -> once the stop rule is done, every view trains to the end
     (``mi_grg.protocol.views``).
@@ -27,12 +28,9 @@ Units: the loop works in the case's units (R2-Gaussian's normalised scene, volum
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -42,117 +40,20 @@ import numpy as np
 
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.data.case import Case
-from mi_grg.training.budget import BudgetPlanner, replans_of
-from mi_grg.training.checkpoint import (CHECKPOINT_NAME, TrainState, checkpoint_time_plan,
-                                        load_checkpoint, save_checkpoint)
-from mi_grg.training.config import (ITERATION_RULE, TRAIN_EXTENT, TrainConfig,
-                                    iterations_for_size, make_config)
+from mi_grg.training.checkpoint import TrainState, checkpoint_time_plan, load_checkpoint
+from mi_grg.training.config import ITERATION_RULE, TRAIN_EXTENT, TrainConfig, make_config
+from mi_grg.training.interrupt import DeferredInterrupt
+from mi_grg.training.stopping import StopControl
+from mi_grg.training.schedule import (_scaled, checkpoint_interval,  # noqa: F401
+                                      gaussian_cap, iteration_rule)
 from mi_grg.classical.pdhg import reconstruct_pdhg
 from mi_grg.core.fdk import fdk
-from mi_grg.protocol.early_stop import EarlyStopper
-from mi_grg.protocol.views import ViewProtocol, stop_from
-
-# The paper's Laplacian weight (8e-4) goes with its raw double sum over M = 50k Gaussians;
-# we scale the raw sum by REFERENCE_N / N so the same weight means the same at any N.
-REFERENCE_N = 50000
-
-
-def laplacian_weight(lambda_lap: float, n: int) -> "mi.Float":
-    """The Laplacian term's weight at N Gaussians, lambda_lap x REFERENCE_N / N, as an
-    opaque scalar: as a literal it changed with every densification and made new kernels."""
-    return dr.opaque(mi.Float, lambda_lap * (REFERENCE_N / max(n, 1)))
-
-
-def evaluate_gradients(raw: dict, *extra) -> None:
-    """Every raw parameter's gradient (and ``extra`` arrays, such as the means2d gradient)
-    in one kernel, after the backward pass. They share the derivative chain from the
-    projector's record parameters to the raw parameters; read one by one (the
-    densification statistics, then Adam's groups), each read re-ran that chain."""
-    dr.eval(*extra, *(dr.grad(v) for v in raw.values()))
-
-
-def iteration_rule(geometry) -> int:
-    """Iterations scaled to the problem size (the paper's 30k is for 256^3 on a GPU).
-
-    n = max(nVoxel): 3000 x sqrt(n / 64), at least 500, up to 64^3 (48^3 -> 2598); above,
-    3000 x n / 64 up to twice that (96^3 -> 4500, 128^3 and up -> 6000).
-
-    Why: the time targets on this project's 2-core CPU (64^3 <= 5 min, 128^3 <= 20 min,
-    256^3 <= 60 min per run) are the limit, not the model. At 64^3 3000 iterations fit the
-    5 minutes; at 128^3 6000 fit the 20, and shells and shepp were still improving where
-    the sparse needles peak early and lose a little, which no projection-domain measure
-    we found tells apart (docs/benchmarks.md, "The rule at 128^3" and "The iteration rule
-    re-derived"). 256^3 keeps the 6000 it had. The schedule (densification window,
-    evaluation interval) scales with the count (``_scaled``), up to this count (the
-    default ``horizon``); ``time_budget`` plans the count to a wall-clock budget instead;
-    ``iterations=1500`` suits sparse objects.
-    """
-    return iterations_for_size(max(geometry.nVoxel))
-
-
-def gaussian_cap(cfg: TrainConfig, geometry) -> int:
-    """Densification cap: min(max_gaussians, ceil(max_gaussians_per_voxel x voxel count)).
-
-    64^3 -> 131072, 128^3 and up -> the 500k of ``max_gaussians``. A per-voxel factor of 0
-    leaves ``max_gaussians`` alone. Below about 46^3 the default 50k De-Init points (capped
-    by the candidate voxels) can already reach the cap; densification then only refills
-    what pruning removes."""
-    cap = int(cfg.densify.max_gaussians)
-    if cfg.densify.max_gaussians_per_voxel > 0:
-        voxels = int(np.prod(np.asarray(geometry.nVoxel, dtype=np.int64)))
-        cap = min(cap, max(1, math.ceil(cfg.densify.max_gaussians_per_voxel * voxels)))
-    return cap
-
-
-def checkpoint_interval(checkpoint_every: int | None, iterations: int) -> int:
-    """Iterations between checkpoints: ``checkpoint_every``, or when None a tenth of the
-    run, at least 1 and at most 500, so that a short run is checkpointed too."""
-    if checkpoint_every is not None:
-        return int(checkpoint_every)
-    return min(500, max(1, int(iterations) // 10))
-
-
-class _DeferredInterrupt:
-    """Ctrl-C (SIGINT) inside the training loop, noted and acted on once the iteration in
-    progress is done: inside one the optimiser, the densifier and the generator advance at
-    different moments, so only between iterations is there one state to checkpoint. A
-    second Ctrl-C interrupts at once. Does nothing outside the main thread (no signal
-    handler there) or where SIGINT is ignored."""
-
-    def __init__(self):
-        self.requested, self._installed, self._old = False, False, None
-
-    def __enter__(self):
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
-            self._old = signal.signal(signal.SIGINT, self._note)
-            self._installed = True
-        return self
-
-    def _note(self, signum, frame):
-        self.requested = True
-        signal.signal(signal.SIGINT, self._previous())
-        print("\ninterrupted: finishing this iteration and writing a checkpoint "
-              "(Ctrl-C again to stop at once)", file=sys.stderr)
-
-    def _previous(self):
-        # None: a handler installed from C, which Python cannot reinstate
-        return signal.default_int_handler if self._old is None else self._old
-
-    def __exit__(self, *exc):
-        if self._installed:
-            signal.signal(signal.SIGINT, self._previous())
-        return False
-
-
-def _scaled(cfg: TrainConfig, iterations: int) -> dict:
-    """Densification window and eval intervals, scaled from the paper's 30k."""
-    f = iterations / 30000.0
-    return {"densify_start": max(1, int(cfg.densify.densify_start * f)),
-            "densify_stop": max(2, int(cfg.densify.densify_stop * f)),
-            "densify_interval": max(1, int(cfg.densify.densify_interval * max(f, 0.25))),
-            "eval_every": max(50, int(cfg.protocol.eval_every * max(f, 0.25)))}
-
+from mi_grg.protocol.views import ViewProtocol
+from mi_grg.training.run_budget import TimeBudget
+from mi_grg.training.run_files import RunFiles
+from mi_grg.training.step import (REFERENCE_N, StepConfig, StepInputs,  # noqa: F401
+                                  evaluate_gradients, laplacian_weight, loss_and_grads,
+                                  view_arrays)
 
 def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     """Densities x old_scale[source] / new_scale, after a densification and graph rebuild.
@@ -177,14 +78,6 @@ def carry_density_scale(raw: dict, old_scale, new_scale, source) -> dict:
     return out
 
 
-def _second_of_two(fn) -> float:
-    """Seconds of the second of two calls of ``fn`` (the first traces and compiles)."""
-    fn()
-    t = time.perf_counter()
-    fn()
-    return time.perf_counter() - t
-
-
 # ---------------------------------------------------------------------------- training
 class Trainer:
     """One training run on a case. Construct, then ``run()``; see the module docstring."""
@@ -193,11 +86,9 @@ class Trainer:
                  resume=False):
         t_begin = time.perf_counter()
         self.case, self.cfg, self.progress = case, cfg, progress
-        self.out = Path(out_dir) if out_dir is not None else None
-        if self.out is not None:
-            self.out.mkdir(parents=True, exist_ok=True)
+        self.files = RunFiles(out_dir)
+        self.out, self.checkpoint_path = self.files.out, self.files.checkpoint_path
         geo = case.geometry
-        self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
         # resume: True continues from out_dir's checkpoint; a path from that file (a run
         # written into a new folder that replaces its old output when done: the CLI's)
         source = (Path(resume) if isinstance(resume, (str, os.PathLike))
@@ -226,17 +117,19 @@ class Trainer:
         if cfg.protocol.monitor_3d and case.vol_gt is None:
             raise ValueError("monitor_3d stops on the 3-D PSNR against a ground truth, and "
                              "this case has none (vol_gt.npy); use the held-out views")
-        self.stopper = EarlyStopper(drop=cfg.protocol.stop_drop,
-                                    patience=cfg.protocol.stop_patience,
-                                    keep=cfg.protocol.keep_state, noise=cfg.protocol.stop_noise)
+        self.stopping = StopControl(cfg.protocol)
         self.graph = None
         # The graph field's multiplier 1 + sum w of the current graph (None: plain field),
         # set with the graph: constant until the next rebuild.
         self._density_scale = None
         # Density multiplier (graph field) that went with the returned state.
         self.final_density_scale = None
-        self._stop = None     # where the stop rule fired (views.Stop), set by run()
-        self.frozen = self._frozen_step() if cfg.run.frozen_step else None
+        self.step_cfg = StepConfig.from_train_config(cfg, geo, self.extent, self.tv_extent)
+        self._view_arrays = {}
+        self.recording = None
+        if cfg.run.frozen_step:
+            from mi_grg.training.recording import Recording
+            self.recording = Recording(self.step_cfg)
         if resuming:
             self.state = load_checkpoint(source, self.optimizer, self.densifier,
                                          self.stopper, cfg)
@@ -253,16 +146,20 @@ class Trainer:
         # Wall clock of the calls this run resumed from (metrics.json's seconds add it).
         self.resumed_seconds = self.state.wall_seconds if resuming else 0.0
         self._wall_start = t_begin - self.resumed_seconds
-        self.planner = None
+        self.budget = None
         if cfg.run.time_budget is not None:
-            self.planner = self._budget_planner()
-            if resuming:      # the recorded plan, replayed (another machine would plan otherwise)
-                for r in replans_of(self.planner.plan):
-                    self._set_rest_of_run(r["at"], r["iterations"], r.get("densify_stop"))
-            else:
-                self.state.time_plan = self.planner.plan_run(len(g), lambda: self._probe(g),
-                                                             t_begin)
-                self._schedule(self.time_plan["iterations"])
+            self.budget = TimeBudget(self)
+            self.budget.start(resuming, None if resuming else g, t_begin)
+
+    @property
+    def stopper(self):
+        """The run's EarlyStopper (``StopControl``)."""
+        return self.stopping.stopper
+
+    @property
+    def _stop(self):
+        """Where the stop rule fired (views.Stop), or None."""
+        return self.stopping.stop
 
     @property
     def time_plan(self) -> dict | None:
@@ -273,7 +170,7 @@ class Trainer:
     def _schedule(self, iterations: int) -> None:
         """The parts that depend on the run's length: the scaled schedule, the view protocol,
         a fresh densifier and optimiser."""
-        from mi_grg.training.densify import DensifyConfig, PGADensifier
+        from mi_grg.training.densify import DensifyWindow, PGADensifier
         from mi_grg.training.optim import Adam
         cfg, geo = self.cfg, self.case.geometry
         self.iterations = int(iterations)
@@ -289,12 +186,12 @@ class Trainer:
                                   1.0 if cfg.protocol.monitor_3d else cfg.protocol.holdout_until,
                                   self.iterations, sched["eval_every"],
                                   cfg.protocol.holdout_catch_up, horizon=self.horizon)
-        # The config's window and cap are the paper's; this run's depend on its length and grid.
-        dcfg = dataclasses.replace(DensifyConfig.from_train_config(cfg),
-                                   start=sched["densify_start"],
-                                   stop=sched["densify_stop"], interval=sched["densify_interval"],
-                                   max_count=gaussian_cap(cfg, geo))
-        self.densifier = PGADensifier(dcfg, seed=cfg.schedule.seed)
+        # The config's window and cap are the paper's; this run's depend on its length and
+        # grid: the densifier's window (its state), the settings stay as written.
+        window = DensifyWindow(start=sched["densify_start"], stop=sched["densify_stop"],
+                               interval=sched["densify_interval"],
+                               max_count=gaussian_cap(cfg, geo))
+        self.densifier = PGADensifier(cfg.densify, seed=cfg.schedule.seed, window=window)
         self.optimizer = Adam.from_train_config(cfg, max_steps=self._scheduled(self.iterations),
                                                 anneal=True)
 
@@ -302,78 +199,10 @@ class Trainer:
         """The length the schedule is scaled to: the run's, at most the horizon."""
         return min(int(iterations), self.horizon)
 
-    def _budget_planner(self) -> BudgetPlanner:
-        """The time_budget planner of this run, on the state's plan (a resumed run's)."""
-        def window_end(iterations: int, eval_every: int) -> int:
-            return dataclasses.replace(self.views, iterations=iterations,
-                                       eval_every=eval_every).window_end
-        return BudgetPlanner(self.cfg.run.time_budget, gaussian_cap(self.cfg, self.case.geometry),
-                             lambda iterations: _scaled(self.cfg, self._scheduled(iterations)),
-                             window_end,
-                             self._logs_3d, plan=self.state.time_plan)
-
-    def _replan(self, it: int, seconds: float, n: int) -> None:
-        """Ask the planner for the rest of the run at ``it`` and apply its answer."""
-        r = self.planner.replan(it, seconds, n, self.state.log, self.sched,
-                                self.densifier.is_densify_iteration)
-        if r is not None:
-            self._set_rest_of_run(it, r["iterations"], r["densify_stop"])
-
-    def _set_rest_of_run(self, at: int, iterations: int, densify_stop: int | None = None) -> None:
-        """The run ends at ``iterations`` instead (decided at iteration ``at``): the held-out
-        window moves with it, the learning-rate decay is stretched to it without a jump, and
-        (while densifying) the window ends at ``densify_stop``. The densification and
-        evaluation intervals stay as first planned."""
-        self.iterations = int(iterations)
-        self.views = dataclasses.replace(self.views, iterations=self.iterations)
-        end = self._scheduled(self.iterations)
-        if at < min(end, self.optimizer.max_steps):   # else the decay is past its end
-            self.optimizer.rehorizon(at, end)
-        if densify_stop is not None:
-            self.sched["densify_stop"] = int(densify_stop)
-            self.densifier.config = dataclasses.replace(self.densifier.config,
-                                                        stop=int(densify_stop))
-
-    def _probe(self, g: Gaussians, steps: int = 8) -> dict:
-        """Seconds of one training iteration (mean of ``steps`` after two warm-up ones that
-        compile the kernels), one held-out evaluation, one graph rebuild and one 3-D PSNR
-        log (each the second of two), on a copy of ``g`` with the current (provisional) optimiser and
-        densifier, which ``_schedule`` replaces afterwards; the run's RNG is not drawn."""
-        raw = g.to_raw()
-        for v in raw.values():
-            dr.enable_grad(v)
-        rng, self.rng = self.rng, np.random.default_rng(0)
-        rebuild = 0.0
-        try:
-            if self.uses_graph:
-                rebuild = _second_of_two(lambda: self._rebuild_graph(raw["positions"]))
-            for it in (1, 2):
-                raw, _ = self._step(it, raw)
-            t = time.perf_counter()
-            for it in range(3, 3 + steps):
-                raw, _ = self._step(it, raw)
-            step = (time.perf_counter() - t) / steps
-            evaluation = log_3d = 0.0
-            if len(self.held_idx):
-                evaluation = _second_of_two(lambda: self._heldout_psnr(raw))
-            if self.case.vol_gt is not None:
-                log_3d = _second_of_two(lambda: self._psnr_3d(raw))
-        finally:
-            self.rng, self.graph, self._density_scale = rng, None, None
-        return {"step": step, "evaluation": evaluation, "rebuild": rebuild, "log_3d": log_3d}
-
     def _psnr_3d(self, raw: dict) -> float:
         """The research log's 3-D PSNR of the current state against the ground truth."""
         from mi_grg.evaluation.metrics import psnr_3d
         return float(psnr_3d(self.volume(raw, self._density_scale), self.case.vol_gt))
-
-    def _logs_3d(self, iterations: int, after: int, eval_every: int) -> int:
-        """How many 3-D PSNR logs (``_evaluate``) iterations after+1 .. ``iterations``
-        make: one every ``log_3d_every`` (else at every evaluation), one at the end."""
-        if self.case.vol_gt is None:
-            return 0
-        every = self.cfg.protocol.log_3d_every or eval_every
-        return max(0, iterations // every - after // every) + 1
 
     # ------------------------------------------------------------------ pieces
     def _initial_gaussians(self):
@@ -479,8 +308,8 @@ class Trainer:
                    dynamic_ncols=True, mininterval=1.0)
         last_psnr = None
         # The stop rule's verdict (restored on resume) decides the view sets and the end.
-        self._stop = stop_from(self.stopper.state_dict())
-        with _DeferredInterrupt() as interrupt:
+        self.stopping.restore()
+        with DeferredInterrupt() as interrupt:
             while st.iteration < self.views.end(self._stop) and st.stopped_by is None:
                 it = st.iteration + 1
                 raw, loss_value = self._step(it, raw)
@@ -491,9 +320,8 @@ class Trainer:
                 row = {"iteration": it,
                        "seconds": round(time.perf_counter() - self._t_start, 3),
                        "loss": loss_value, "n_gaussians": dr.width(raw["raw_densities"])}
-                if (self.planner is not None and self.planner.wants_replan(
-                        it, densified, self.sched["densify_stop"])):
-                    self._replan(it, row["seconds"], dr.width(raw["raw_densities"]))
+                if self.budget is not None and self.budget.after_iteration(
+                        it, densified, row["seconds"], row["n_gaussians"]):
                     bar.total = self.iterations
                 raw = self._evaluate(it, raw, row)
                 last_psnr = row.get("heldout_psnr", last_psnr)
@@ -504,8 +332,8 @@ class Trainer:
                                 refresh=False)
                 st.seconds = time.perf_counter() - self._t_start
                 st.rng = self.rng.bit_generator.state
-                if (self.planner is not None and st.stopped_by is None
-                        and self.planner.out_of_time(st.seconds)):
+                if (self.budget is not None and st.stopped_by is None
+                        and self.budget.out_of_time(st.seconds)):
                     st.stopped_by = (f"time budget ({self.cfg.run.time_budget:g} s) reached at "
                                      f"iteration {it} of {self.iterations} planned")
                 every = checkpoint_interval(self.cfg.run.checkpoint_every, self.iterations)
@@ -518,58 +346,46 @@ class Trainer:
         return self._finish()
 
     def _step(self, it: int, raw: dict):
-        """One iteration: a random training view's (``views.train_views``) projection loss (+ TV on a random block
-        every ``tv_every``-th iteration, + the graph Laplacian), backward, densification
-        statistics, Adam. Returns (new raw, loss value). Random draws, in this order: the
-        view, then the TV block's corner."""
-        from mi_grg.training.graph import laplacian_loss
-        from mi_grg.training.losses import projection_loss, tv_3d
-        cfg, geo = self.cfg, self.case.geometry
-        nv, nu = geo.nDetector
-        weights = self.views.draw_weights(it, self._stop)
-        view = int(self.rng.choice(self.views.train_views(it, self._stop), p=weights))
-        start = self._tv_start(it)
-        if self.frozen is not None:
-            done = self.frozen.iteration(self, it, raw, view, start, laplacian_weight)
-            if done is not None:
-                return done
-        g = Gaussians.from_raw(raw)
-        ds = self._density_scale
-        n = len(g)
-        means2d = dr.zeros(mi.Vector2f, n)
-        dr.enable_grad(means2d)
-        img = self._project(g, geo.angles[view:view + 1], ds, means2d)
-        pred = mi.TensorXf(img.array, (nv, nu))
-        loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
-        if start is not None:
-            block = np.minimum(cfg.losses.tv_block, np.asarray(geo.nVoxel))
-            from mi_grg.core.voxelizer import voxelize_dr
-            vol = voxelize_dr(g, geo, block=(start, block.tolist()), extent=self.tv_extent,
-                              density_scale=ds)
-            loss = loss + (cfg.losses.lambda_tv * cfg.losses.tv_every) * tv_3d(vol)
-        if cfg.graph.lambda_lap > 0 and self.graph is not None:
-            lap = laplacian_loss(self.graph, g.densities, normalise=False)
-            loss = loss + laplacian_weight(cfg.graph.lambda_lap, n) * lap
-        dr.backward(loss)
-        # The projector's means2d gradient is per pixel; R2-Gaussian's threshold (tau_pos)
-        # is per NDC unit: ndc = 2 pixel / n - 1, so d/d(ndc) = (n/2) d/d(pixel).
-        grad2d = dr.grad(means2d)
-        evaluate_gradients(raw, grad2d, dr.detach(loss))
-        gnorm = dr.norm(mi.Vector2f(grad2d.x * (nu / 2.0), grad2d.y * (nv / 2.0)))
-        self.densifier.accumulate(gnorm, visible=gnorm > 0)
-        loss_value = float(loss[0]) if dr.width(loss) else float(loss)
+        """One iteration: draw a training view (``views.train_views``), then the TV block's
+        corner; the loss and its gradients (``step.loss_and_grads``, replayed from a
+        recording where one serves); densification statistics; Adam. Returns (new raw,
+        loss value)."""
+        view = int(self.rng.choice(self.views.train_views(it, self._stop),
+                                   p=self.views.draw_weights(it, self._stop)))
+        inputs = self._step_inputs(raw, view, self._tv_start(it))
+        done = self._replay(inputs) if self.recording is not None else None
+        if done is None:        # traced (or handed back by the recording)
+            out = loss_and_grads(self.step_cfg, inputs)
+            done = {"grads": out.grads, "gnorm": out.gnorm}, float(out.loss[0])
+        out, loss_value = done
         if not math.isfinite(loss_value):
             raise FloatingPointError(f"loss is {loss_value} at iteration {it}")
-        return self.optimizer.step(raw), loss_value
+        if "stats" in out:      # the statistics and Adam were recorded too
+            self.densifier.add(out["stats"])
+            return self.optimizer.apply(out["raw"], out["m"], out["v"]), loss_value
+        self.densifier.accumulate(out["gnorm"], visible=out["gnorm"] > 0)
+        return self.optimizer.step(raw, grads=out["grads"]), loss_value
 
-    def _frozen_step(self):
-        """The recorded iteration (``TrainConfig.run.frozen_step``) for this run's losses."""
-        from mi_grg.training.frozen_step import FrozenStep
-        cfg, geo = self.cfg, self.case.geometry
-        tv = (cfg.losses.lambda_tv * cfg.losses.tv_every,
-              np.minimum(cfg.losses.tv_block, geo.nVoxel), self.tv_extent)
-        return FrozenStep(geo, self.extent, cfg.losses.lambda_ssim, cfg.graph.lambda_lap,
-                          tv=tv)
+    def _step_inputs(self, raw: dict, view: int, start=None, density_scale="current"):
+        """The step's inputs of this state for ``view`` (TV block at ``start``)."""
+        lap = None
+        if self.step_cfg.lambda_lap > 0 and self.graph is not None:
+            lap = laplacian_weight(self.step_cfg.lambda_lap, dr.width(raw["raw_densities"]))
+        arrays = self._view_arrays.get(view)
+        if arrays is None:
+            arrays = self._view_arrays[view] = view_arrays(self.case.geometry, view,
+                                                           self.step_cfg.shared)
+        ds = self._density_scale if density_scale == "current" else density_scale
+        return StepInputs(raw, arrays, self.targets[view], ds, self.graph, lap, start)
+
+    def _replay(self, inputs: StepInputs):
+        """(outputs, loss value) of the recorded step, with the statistics and Adam
+        recorded too where they can be; None: run this iteration traced."""
+        n = dr.width(inputs.raw["raw_densities"])
+        stats = self.densifier.recorded_inputs(n)
+        adam = self.optimizer.recorded_inputs(inputs.raw)
+        update = None if stats is None or adam is None else {"stats": stats, "adam": adam}
+        return self.recording.step(inputs, update, (self.optimizer.betas, self.optimizer.eps))
 
     def _tv_start(self, it: int):
         """This iteration's TV block corner [x, y, z] (a random draw), or None (no TV)."""
@@ -577,7 +393,7 @@ class Trainer:
         if not (cfg.losses.lambda_tv > 0 and it % cfg.losses.tv_every == 0):
             return None
         nvox = np.asarray(self.case.geometry.nVoxel)
-        block = np.minimum(cfg.losses.tv_block, nvox)
+        block = self.step_cfg.tv.block
         return [int(self.rng.integers(0, int(nvox[a] - block[a]) + 1)) for a in range(3)]
 
     def _densify_and_rebuild(self, it: int, raw: dict) -> dict:
@@ -622,47 +438,25 @@ class Trainer:
             return raw
         row["heldout_psnr"] = self._heldout_psnr(raw)
         watched = row.get("psnr_3d") if cfg.protocol.monitor_3d else row["heldout_psnr"]
-        # Densification reshapes the model; judge (and keep) states only after it.
-        if watched is not None and it < self.sched["densify_stop"]:
-            self.stopper.observe(it, watched)     # informs the rule's noise margin only
-        elif watched is not None:
-            if cfg.protocol.monitor_3d:
-                self.stopper.label = "3-D PSNR vs ground truth (research option)"
-            verdict = self.stopper.update(it, watched)
-            if self.stopper.kept_iteration == it:
-                st.kept_raw = {k: dr.detach(v) for k, v in raw.items()}
-                ds = self._density_scale
-                st.kept_density_scale = None if ds is None else mi.Float(ds)
-            elif verdict == "stop":
-                self._stop = stop_from(self.stopper.state_dict())
-                if self.views.end(self._stop) == it:
-                    st.stopped_by = self.stopper.reason
-                else:   # go on from the kept state, on every view
-                    raw = {k: dr.detach(v) for k, v in st.kept_raw.items()}
-                    for v in raw.values():
-                        dr.enable_grad(v)
-                    st.raw, self._density_scale = raw, st.kept_density_scale
+        raw, self._density_scale = self.stopping.judge(
+            it, watched, it < self.sched["densify_stop"], st, raw, self._density_scale,
+            self.views)
         return raw
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint_path is not None:
             self.state.wall_seconds = time.perf_counter() - self._wall_start
-            save_checkpoint(self.checkpoint_path, self.state, self.optimizer, self.densifier,
-                            self.stopper, self.cfg)
+            self.files.save_checkpoint(self.state, self.optimizer, self.densifier,
+                                       self.stopper, self.cfg)
 
     def _finish(self) -> dict:
         """Why the run ended, the state to return (the last one once the held-out views
         have joined training; else the kept one, refitted on all views when
-        ``refit_iterations``), the summary; with an output folder, the final checkpoint,
-        train_log.csv / .png and the Gaussians (.npz, .ply)."""
+        ``refit_iterations``), the summary; with an output folder, the final checkpoint
+        and train_log.csv / .png (the exported Gaussians are the result's,
+        ``RunFiles.write_gaussians``)."""
         cfg, st, stop = self.cfg, self.state, self._stop
-        if st.stopped_by is None and stop is not None and st.iteration >= self.views.end(stop):
-            st.stopped_by = (f"{self.stopper.reason}; then "
-                             f"{self.views.after_stop(stop.kept_iteration)} iterations on "
-                             f"every view from the state of iteration {stop.kept_iteration}")
-        if st.stopped_by is None:
-            st.stopped_by = (f"iteration budget ({self.iterations}) reached"
-                             if st.iteration >= self.iterations else "interrupted")
+        self.stopping.ending(st, self.views, self.iterations)
         joined = self.views.joined(st.iteration, stop)
         returned = st.iteration
         if joined:      # the last state, trained on every view
@@ -677,10 +471,8 @@ class Trainer:
             final = self._refit(final, cfg.protocol.refit_iterations)
         st.raw = final
         summary = {"iterations_run": st.iteration, "iterations_planned": self.iterations,
-                   "stopped_by": st.stopped_by, "best_iteration": self.stopper.best_iteration,
-                   "kept_iteration": self.stopper.kept_iteration,
-                   "best_heldout_psnr": (self.stopper.best if math.isfinite(self.stopper.best)
-                                         else None),
+                   "stopped_by": st.stopped_by,
+                   **self.stopping.summary(st, self.views, returned),
                    "n_gaussians": dr.width(final["raw_densities"]),
                    "train_seconds": st.seconds,
                    "schedule": {**self.sched, "horizon": self.horizon,
@@ -690,37 +482,17 @@ class Trainer:
                    # wall clock of the earlier calls of a resumed run, to its checkpoint
                    # (0: not resumed); metrics.json's seconds include it
                    "resumed_seconds": self.resumed_seconds,
-                   "max_gaussians": self.densifier.config.max_count,
+                   "max_gaussians": self.densifier.window.max_count,
                    "held_out_views": self.held_idx.tolist(), "init": self.init_info,
-                   "views": self.views.record(st.iteration, stop, self.stopper.history,
-                                              self.stopper.reason, returned),
-                   # the margin the last decision used (mi_grg.protocol.early_stop)
-                   "stop_margin": {"drop": cfg.protocol.stop_drop,
-                                   "noise": cfg.protocol.stop_noise,
-                                   "scatter_db": self.stopper.scatter(),
-                                   "margin_db": (self.stopper.margin()
-                                                 if math.isfinite(self.stopper.best)
-                                                 else None)},
                    "time_plan": self.time_plan,
                    # what the automatic fields resolved to (lab.staleness.stale_keys compares)
                    "extent": self.extent, "iteration_rule": ITERATION_RULE}
         if self.out is not None:
-            from mi_grg.evaluation.plotting import plot_log
-            from mi_grg.training.log import write_log
             self._save_checkpoint()
-            write_log(self.out / "train_log.csv", st.log)
-            plot_log(self.out / "train_log.png", st.log, returned)
+            self.files.write_final(st.log, returned)
         return summary
 
     # ------------------------------------------------------------------ held-out views
-    def write_gaussians(self, g: Gaussians, stem: str) -> None:
-        """The exported field (``mi_grg.training.result``) as <stem>.npz and .ply in the
-        output folder (nothing without one)."""
-        if self.out is not None:
-            from mi_grg.data.ply import save_ply
-            g.save_npz(self.out / f"{stem}.npz")
-            save_ply(g, self.out / f"{stem}.ply")
-
     def _heldout_psnr(self, raw) -> float | None:
         """Mean PSNR of the held-out views' projections of ``raw`` (None without any)."""
         if len(self.held_idx) == 0:
@@ -734,21 +506,17 @@ class Trainer:
         return float(psnr_proj(pred, self.case.train[self.held_idx]))
 
     def _refit(self, raw, n_iter: int):
-        """Brief refit on all views (held-out ones included) after early stopping."""
-        from mi_grg.training.losses import projection_loss
-        geo, cfg = self.case.geometry, self.cfg
-        nv, nu = geo.nDetector
+        """Brief refit on all views (held-out ones included) after early stopping: the
+        step's projection loss alone (``StepConfig.refit``)."""
+        cfg = self.step_cfg.refit()
         raw = {k: dr.detach(v) for k, v in raw.items()}
         for v in raw.values():
             dr.enable_grad(v)
         for _ in range(n_iter):
-            view = int(self.rng.integers(0, geo.n_views))
-            g = Gaussians.from_raw(raw)
-            img = self._project(g, geo.angles[view:view + 1], self.final_density_scale)
-            pred = mi.TensorXf(img.array, (nv, nu))
-            loss = projection_loss(pred, self.targets[view], cfg.losses.lambda_ssim)
-            dr.backward(loss)
-            raw = self.optimizer.step(raw)
+            view = int(self.rng.integers(0, self.case.geometry.n_views))
+            out = loss_and_grads(cfg, self._step_inputs(raw, view,
+                                                        density_scale=self.final_density_scale))
+            raw = self.optimizer.step(raw, grads=out.grads)
         return raw
 
 
@@ -764,7 +532,7 @@ def _train_method(method: str):
         vol, g, summary["result"] = finish(trainer, progress)
         if "refine" in summary["result"]:
             summary["refine"] = summary["result"].pop("refine")
-        trainer.write_gaussians(g, summary["result"]["export"]["stem"])
+        trainer.files.write_gaussians(g, summary["result"]["export"]["stem"])
         return vol, summary
     run.__name__ = f"reconstruct_{method}"
     run.__doc__ = (f"{method} training under the reconstruction contract: options are "

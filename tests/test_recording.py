@@ -1,4 +1,4 @@
-"""The recorded training step (TrainConfig.frozen_step, mi_grg.training.frozen_step): the
+"""The recorded training step (TrainConfig.frozen_step, mi_grg.training.recording): the
 same loss and gradients as the traced step, re-recorded after a capacity overflow and a
 densification, and replayed after a resume."""
 
@@ -10,7 +10,7 @@ import pytest
 import mi_grg  # noqa: F401  (first: Dr.Jit's LLVM library and the variant)
 from mi_grg.core.gaussians import Gaussians
 from mi_grg.training.config import make_config
-from mi_grg.training.frozen_step import FrozenStep
+from mi_grg.training.recording import Recording
 from mi_grg.training.graph import laplacian_loss
 from mi_grg.core.voxelizer import voxelize_dr
 from mi_grg.training.losses import projection_loss, tv_3d
@@ -55,7 +55,7 @@ def _traced(tr, raw, view, start=None):
 
 
 def _state(case, **kw):
-    """A fresh trainer's state (raw with gradients, graph) and a FrozenStep logging to a
+    """A fresh trainer's state (raw with gradients, graph) and a Recording logging to a
     list."""
     cfg = make_config("gr", iterations=30, **TINY, **kw)
     tr = Trainer(case, cfg, progress=False)
@@ -64,19 +64,14 @@ def _state(case, **kw):
         dr.enable_grad(v)
     tr._rebuild_graph(raw["positions"])
     said = []
-    fz = FrozenStep(case.geometry, tr.extent, cfg.losses.lambda_ssim, cfg.graph.lambda_lap,
-                    log=said.append,
-                    tv=(cfg.losses.lambda_tv * cfg.losses.tv_every,
-                        np.minimum(cfg.losses.tv_block, case.geometry.nVoxel), tr.tv_extent))
+    fz = Recording(tr.step_cfg, log=said.append)
     return tr, raw, fz, said
 
 
 def _frozen_calls(tr, raw, fz, calls):
-    n = dr.width(raw["raw_densities"])
     out = []
     for view, start in calls:
-        res, key = fz.run(raw, view, tr.targets[view], tr.graph, tr._density_scale,
-                          laplacian_weight(tr.cfg.graph.lambda_lap, n), start)
+        res, key = fz.run(tr._step_inputs(raw, view, start))
         out.append((view, start, fz.check(res, key), res))
     return out
 
@@ -141,8 +136,8 @@ def test_densification_re_records_and_the_run_matches_the_traced_one(tiny_case, 
     frozen = _run(tiny_case, tmp_path / "f", frozen=True)
     ns = {r["n_gaussians"] for r in frozen.state.log}
     assert len(ns) >= 2                                  # densification happened
-    assert frozen.frozen.n_recordings >= len(ns)      # one recording per N at least
-    assert frozen.frozen.replays >= 40 and frozen.frozen.fn[True].n_recordings >= 1
+    assert frozen.recording.n_recordings >= len(ns)      # one recording per N at least
+    assert frozen.recording.replays >= 40 and frozen.recording.fn[True].n_recordings >= 1
     assert [r["n_gaussians"] for r in frozen.state.log] == \
         [r["n_gaussians"] for r in traced.state.log]
     np.testing.assert_allclose([r["loss"] for r in frozen.state.log],
@@ -158,7 +153,7 @@ def test_resumed_frozen_run_replays_like_the_uninterrupted_one(tiny_case, tmp_pa
     full = _run(tiny_case, tmp_path / "full", frozen=False)
     _run(tiny_case, tmp_path / "cut", frozen=True, crash=40)
     resumed = _run(tiny_case, tmp_path / "cut", frozen=True, resume=True)
-    assert resumed.frozen.replays > 0
+    assert resumed.recording.replays > 0
     assert resumed.state.iteration == full.state.iteration
     a, b = _raw(resumed), _raw(full)
     for k in a:
