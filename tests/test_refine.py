@@ -139,7 +139,7 @@ def test_gr_refine_option(tiny_case, capsys, tmp_path):
     assert m["method_info"]["result"]["export"]["is_result"] is False
     assert (tmp_path / "v" / "gaussians_before_voxel_step.npz").exists()
     assert not (tmp_path / "v" / "gaussians.npz").exists()
-    from mi_grg.evaluation.crosscheck import run_scene
+    from mi_grg.evaluation.crosscheck_run import run_scene
     with pytest.raises(FileNotFoundError, match="scored a voxel grid"):
         run_scene(tmp_path / "v", tmp_path / "render")
     if m["method_info"]["refine"]["iterations"] > 0:
