@@ -172,11 +172,11 @@ class _Step:
         self.iterations = iteration_rule(self.geo)
         self.targets = [mi.TensorXf(np.ascontiguousarray(t)) for t in train]
         self.optimizer = Adam.from_train_config(config, max_steps=self.iterations)
-        try:    # a revision from before the one densification settings class
-            from mi_grg.training.densify import DensifyConfig
-            self.densifier = PGADensifier(DensifyConfig.from_train_config(config), seed=cfg.seed)
-        except ImportError:
-            self.densifier = PGADensifier(config.densify, seed=cfg.seed)
+        import mi_grg.training.densify as densify
+        # a --before revision from before the one densification settings class has its own
+        old = getattr(densify, "DensifyConfig", None)
+        settings = old.from_train_config(config) if old is not None else config.densify
+        self.densifier = PGADensifier(settings, seed=cfg.seed)
         self.uses_graph = cfg.use_graph_field or cfg.use_pga or cfg.lambda_lap > 0
         self.graph = self.ds = None
         if self.uses_graph:
