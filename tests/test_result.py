@@ -59,7 +59,9 @@ def test_length_is_the_held_out_minimum_and_the_cap_is_said(trained, capsys, mon
     vol, g, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert info["at_cap"] and "a higher cap may pay" in capsys.readouterr().err
-    np.testing.assert_array_equal(result.field_volume(t, g), vol)
+    # (the voxelizer's scatter-adds sum in thread order: two calls differ in the last bits)
+    np.testing.assert_allclose(result.field_volume(t, g), vol, rtol=1e-5,
+                               atol=1e-6 * float(np.abs(vol).max()))
 
 
 def test_fit_to_volume_recovers_a_field_from_a_perturbed_start(tiny_case):
