@@ -57,7 +57,7 @@ def finish(trainer, progress: bool = True) -> tuple:
     info = {"voxel_average": cfg.voxel_average,
             "export": {"stem": EXPORT_STEMS["gaussians"], "is_result": True}}
     parts = _Parts(trainer)
-    parts.add("gaussians", trainer.volume())
+    parts.add("gaussians", trainer.volume)
     vol = field_volume(trainer, field)
     parts.add("voxel_averaged", vol)
     if cfg.refine == "tv":
@@ -73,7 +73,8 @@ def finish(trainer, progress: bool = True) -> tuple:
             parts.add("refined_grid", info["refine"].pop("grid", None))
             if cfg.refine_output == "voxels":
                 info["export"] = {"stem": EXPORT_STEMS["voxels"], "is_result": False}
-    parts.add("export", field_volume(trainer, field) if info["export"]["is_result"] else None)
+    # vol is the exported field's voxelisation whenever the export is the result
+    parts.add("export", vol if info["export"]["is_result"] else None)
     info["parts"] = parts.record
     info["seconds"] = time.perf_counter() - t0
     return vol, field, info
@@ -246,8 +247,10 @@ class _Parts:
         self.record = {}
 
     def add(self, name: str, vol) -> None:
+        """``vol``: a volume, a function that makes one (made only with a ground truth),
+        or None."""
         if self.gt is None or vol is None:
             self.record[name] = None
             return
         from mi_grg.evaluation.metrics import psnr_3d
-        self.record[name] = float(psnr_3d(vol, self.gt))
+        self.record[name] = float(psnr_3d(vol() if callable(vol) else vol, self.gt))
