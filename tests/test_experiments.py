@@ -164,11 +164,11 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     raw["method_options"] = {"gr": {"iterations": 2, "n_points": 300, "holdout_every": 0}}
     suite.write_text(json.dumps(raw))
     out = tmp_path / "out"
-    # gr and its paper-configuration row (gr-paper)
-    assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 2
+    # gr, its paper-configuration row (gr-paper) and its classical step alone (pdhg-cold)
+    assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 3
     run_dir = out / "table1" / "shepp" / "gr"
     assert stale_options(run_dir) == []
-    assert run_experiment("table1", suite, out, dry_run=True)["done before"] == 2
+    assert run_experiment("table1", suite, out, dry_run=True)["done before"] == 3
     m = json.loads((run_dir / "metrics.json").read_text())
     m["method_info"]["config"]["tv_every"] += 1       # as if run under another default
     (run_dir / "metrics.json").write_text(json.dumps(m))
@@ -430,9 +430,16 @@ def test_repo_suites_are_valid():
     res = run_experiment("all", REPO / "experiments" / "suite_cpu.json", "/nonexistent/x",
                          dry_run=True)
     t1 = [r for r in res["runs"] if r["experiment"] == "table1"]
-    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-fixed, pdhg, pdhg-morozov, r2, gr, gr-paper
-    assert len(t1) == 10 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
-    assert {r["run"] for r in t1 if r["run"].startswith("pdhg")} == {"pdhg", "pdhg-morozov"}
+    # fdk, sart, sart-fixed, asd-pocs, asd-pocs-best, asd-pocs-fixed, pdhg, pdhg-best,
+    # pdhg-morozov, pdhg-cold, r2, gr, gr-paper
+    assert len(t1) == 13 * len(load_suite(REPO / "experiments" / "suite_cpu.json").cases)
+    assert {r["run"] for r in t1 if r["run"].startswith("pdhg")} == {
+        "pdhg", "pdhg-best", "pdhg-morozov", "pdhg-cold"}
+    cold = next(r for r in t1 if r["run"] == "pdhg-cold")
+    from mi_grg.training.config import make_config
+    proto = make_config("gr").protocol
+    assert cold["options"]["lam"] == proto.refine_lam and cold["options"]["stop"] == "none"
+    assert cold["options"]["n_iter"] >= 5 * proto.refine_max_iterations
     assert res["todo"] + res["duplicate"] == res["planned"]   # shared runs are not rerun
     assert not Path("/nonexistent/x").exists()
 
@@ -576,3 +583,33 @@ def test_the_checkpoint_interval_never_makes_a_run_stale():
     assert stale_keys(run()) == []
     assert stale_keys(run(checkpoint_every=500)) == []
     assert stale_keys(run(checkpoint_every=500, k=5)) == ["k"]
+
+
+def test_a_hybrids_parts_are_rows_and_the_cold_classical_step_competes(tmp_path):
+    """gr's trained Gaussians alone (from its record of the result's parts) get a row of
+    their own that never competes with gr; the cold PDHG at gr's weight competes in both
+    margins (held-out and fixed)."""
+    from mi_grg.lab.report import classical_margin, summary_lines
+    from mi_grg.lab.report_tables import table1_rows
+    out = tmp_path / "res"
+    held = {"protocol": "heldout", "chosen": {"setting": {"lam": 0.003}, "sweeps": 60}}
+    parts = {"result": {"parts": {"gaussians": 29.5, "voxel_averaged": 30.0, "export": 31.0}}}
+    for case, (pdhg, cold, gr) in {"a": (30.0, 30.5, 31.0), "b": (30.0, 29.0, 32.0)}.items():
+        _fake_run(out, "table1", case, "fdk", "HO", "fdk", psnr_3d=20.0, ssim_3d=0.5)
+        _fake_run(out, "table1", case, "pdhg", "HO", "pdhg", psnr_3d=pdhg, ssim_3d=0.8,
+                  method_info=held)
+        _fake_run(out, "table1", case, "pdhg-cold", "HO", "pdhg", psnr_3d=cold, ssim_3d=0.8)
+        _fake_run(out, "table1", case, "gr", "HO", "gr", psnr_3d=gr, ssim_3d=0.9,
+                  method_info=parts)
+    rows = load_runs(out)["table1"]
+    part = [r for r in rows if r["run"] == "gr-gaussians"]
+    assert [(r["case"], r["metrics"]) for r in part] == [("a", {"psnr_3d": 29.5}),
+                                                         ("b", {"psnr_3d": 29.5})]
+    mg = classical_margin(rows)
+    assert [(c, m, round(d, 6)) for c, m, d in mg["heldout"]] == [("a", "pdhg-cold", 0.5),
+                                                                  ("b", "pdhg", 2.0)]
+    h, b = table1_rows(rows)
+    by = {line[0]: line for line in b}
+    assert by["gr's trained Gaussians alone (before its result's steps)"][3] == "29.50"
+    # the Gaussians alone are gr's part, not a competitor: gr is best on both cases
+    assert "best 3-D PSNR on 2 of 2 cases" in summary_lines(out)[0]

@@ -4,6 +4,8 @@ References: the held-out split of the trainer (the same function), a scripted me
 held-out-view error has a known best sweep and setting, and the contract (which views
 decided, which views the final run used; bad input names the fix).
 """
+import math
+
 import numpy as np
 import pytest
 
@@ -174,3 +176,60 @@ def test_discrepancy_stops_sart_near_its_best_sweep_where_heldout_psnr_cannot():
                          name="sart", project=forward_project, progress=False)
     assert old["oracle"]["gap_db"] > 2.0
     assert "discrepancy" not in old
+
+
+def test_widening_doubles_while_the_last_doubling_pays():
+    from mi_grg.protocol.widening import Widening
+    w = Widening(10, gain_db=0.5, max_factor=8)
+    # a value that gains 1 dB per doubling until 40, then 0.1 dB per doubling
+    def value(s):
+        return math.log2(s) if s <= 40 else math.log2(40) + 0.1 * math.log2(s / 40)
+    hist = []
+    ends = None
+    for s in range(5, 200, 5):
+        hist.append((s, value(s)))
+        if not w.goes_on(hist, s):
+            ends = s
+            break
+    # doublings at 10, 20, 40 pay (1 dB > 0.5); the one ending at 80 brings 0.1 dB: stop
+    assert ends == 80 and not w.binds(hist, ends)
+    hist = [(s, math.log2(s)) for s in range(5, 81, 5)]
+    assert w.ceiling == 80 and not w.goes_on(hist, 80) and w.binds(hist, 80)
+    assert all(w.goes_on(hist[:i + 1], s) for i, (s, _) in enumerate(hist[:-1]))
+    for bad in ({"base": 0}, {"base": 5, "gain_db": -1.0}, {"base": 5, "max_factor": 0}):
+        with pytest.raises(ValueError):
+            Widening(**bad)
+
+
+def test_a_widening_cap_runs_a_slowly_converging_method_past_its_base(capsys):
+    """A scripted method whose held-out error falls as 1 / sweep never stops by the rule:
+    with ``widen`` its cap doubles to the ceiling and says so; one whose error is flat
+    after sweep 10 stops at the first doubling that brings nothing."""
+    from mi_grg.protocol.widening import WIDEN_MAX_FACTOR
+    case, x_true = small_case()
+
+    def run(proj, geo, n_iter, callback, progress, flat_from):
+        for it in range(n_iter):
+            k = min(it + 1, flat_from)
+            vol = x_true + (0.5 / k + 1e-3) * RAMP
+            if callback(it, vol):
+                break
+        return vol
+
+    vol, info = run_heldout(case, run, [{"flat_from": 10 ** 6}], max_sweeps=4, name="t",
+                            project=forward_project, oracle=False, widen=True,
+                            progress=False)
+    c = info["candidates"][0]
+    assert c["sweeps_run"] == 4 * WIDEN_MAX_FACTOR and c["cap_binds"]
+    assert info["cap"]["binds"] and info["chosen"]["sweeps"] == 4 * WIDEN_MAX_FACTOR
+    assert "still rose at the widened cap" in capsys.readouterr().err
+    vol, info = run_heldout(case, run, [{"flat_from": 10}], max_sweeps=4, name="t",
+                            project=forward_project, oracle=False, widen=True,
+                            progress=False)
+    c = info["candidates"][0]
+    # doublings end at 8 and 16 (both gain), at 32 the last 16 sweeps brought nothing
+    assert c["sweeps_run"] == 32 and not c["cap_binds"] and not info["cap"]["binds"]
+    # without widening the base caps it
+    vol, info = run_heldout(case, run, [{"flat_from": 10}], max_sweeps=4, name="t",
+                            project=forward_project, oracle=False, progress=False)
+    assert info["candidates"][0]["sweeps_run"] == 4 and "cap" not in info

@@ -367,6 +367,9 @@ HELDOUT_SWEEP_CAP = 20
 #: half-decades above it (the TV step as a fraction of the first SART update); the search
 #: widens past whichever end wins (``weight_grid``).
 ALPHA_GRID = (0.002, 0.006, 0.02, 0.06)
+#: ASD-POCS's weight rules (``alpha_rule``; mi_grg.protocol.search.RULES): Morozov's weight
+#: rule and the discrepancy sweep rule ASD-POCS stops by exclude each other.
+ALPHA_RULES = ("one_se", "best")
 #: Values a weight search may add past each end of its grid (half-decades: two decades).
 GRID_EXTEND = 4
 
@@ -451,7 +454,8 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
                          epsilon=None, relaxation: float = 1.0, relaxation_decay: float = 0.99,
                          blocksize: int = 1, nonneg: bool = True, init=None,
                          order: str = "angular", tv_eps: float = 1e-8, seed: int = 0,
-                         holdout_every=None, oracle=None, progress: bool = True):
+                         alpha_rule=None, holdout_every=None, oracle=None,
+                         progress: bool = True):
     """The ``--method asd-pocs`` entry point (see ``asd_pocs`` for every option).
 
     Options: stop ("heldout": the sweep count (discrepancy principle, the noise level
@@ -460,7 +464,10 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
     (cap under "heldout", HELDOUT_SWEEP_CAP; FIXED_SWEEPS under "none"), alpha (None =
     ALPHA_GRID under "heldout" and TIGRE's 0.002 under "none"; a number or, under
     "heldout", a list of candidates; the search widens the list or ALPHA_GRID past a winning
-    end, metrics.json's method_info.search says where it ended), tv_iters (ng, 20), alpha_red (0.95), r_max (0.95),
+    end, metrics.json's method_info.search says where it ended), alpha_rule (how "heldout"
+    chooses alpha from a grid: None / "one_se", the one-standard-error rule, or "best", the
+    best held-out PSNR; Morozov's weight rule excludes the discrepancy sweep rule ASD-POCS
+    uses), tv_iters (ng, 20), alpha_red (0.95), r_max (0.95),
     epsilon (None = 0.2 x FDK residual), relaxation (1.0), relaxation_decay (0.99),
     blocksize (1), nonneg (True), init (None), order ("angular"), tv_eps (1e-8), seed,
     holdout_every, oracle (as for sart), progress. Returns float32 [x, y, z] (and, under
@@ -471,10 +478,19 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
                 blocksize=blocksize, nonneg=nonneg, init=init, order=order, tv_eps=tv_eps,
                 seed=seed)
     if _fixed(stop, holdout_every, oracle, "asd-pocs"):
+        if alpha_rule is not None:
+            raise ValueError("asd-pocs: alpha_rule chooses alpha on held-out views; it "
+                             "needs stop='heldout'")
         a = _one(0.002 if alpha is None else alpha, "alpha")
         return asd_pocs(case.train, case.geometry, n_iter=FIXED_SWEEPS if n_iter is None
                         else n_iter, alpha=a, progress=progress, **opts)
-    grid = weight_grid(alpha, "alpha", ALPHA_GRID)
+    if alpha_rule is not None and alpha_rule not in ALPHA_RULES:
+        raise ValueError(f"asd-pocs: alpha_rule must be one of {', '.join(ALPHA_RULES)}, "
+                         f"got {alpha_rule!r}")
+    grid = weight_grid(alpha, "alpha", ALPHA_GRID, alpha_rule or "one_se")
+    if alpha_rule is not None and not isinstance(grid, LogGrid):
+        raise ValueError(f"asd-pocs: alpha_rule={alpha_rule!r} chooses among a grid of "
+                         f"alpha; alpha={alpha!r} leaves nothing to choose")
     return run_heldout(case, lambda p, g, **kw: asd_pocs(p, g, **opts, **kw), grid,
                        project=forward_project,
                        max_sweeps=HELDOUT_SWEEP_CAP if n_iter is None else n_iter,

@@ -55,6 +55,8 @@ WARM_DUAL_ITERATIONS = 200
 FIXED_ITERATIONS = 100
 #: Cap on iterations per candidate under ``stop="heldout"``.
 HELDOUT_ITERATION_CAP = 60
+#: Whether the held-out cap widens by default (``widen``; docs/bench/pdhg_rules.md).
+WIDEN_CAP = False
 #: Held-out evaluations every this many iterations: an iteration moves far less than a
 #: SART sweep (one simultaneous update instead of one per view).
 EVAL_EVERY = 5
@@ -275,10 +277,16 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
 
 
 # ---------------------------------------------------------------- reconstruction contract
+def _flag(value, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"pdhg: {name} must be true or false, got {value!r}")
+    return bool(value)
+
+
 def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamma=None,
                      lam_rule=None, upper=None, nonneg: bool = True, power_iters: int = 8,
                      eval_every: int = EVAL_EVERY, holdout_every=None, oracle=None,
-                     start=None, progress: bool = True):
+                     start=None, widen=None, progress: bool = True):
     """The ``--method pdhg`` entry point: Chambolle-Pock TV of ``case.train``.
 
     Options: stop ("heldout": the iteration count and lam are chosen on held-out views by
@@ -292,7 +300,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
     ground truth exists), start (None; or, to refine another method's result under
     "heldout", the volumes [x, y, z] the decision runs and the final run start from:
-    ``run_heldout``'s ``start``),
+    ``run_heldout``'s ``start``), widen (under "heldout": the cap n_iter is a base that
+    doubles while the held-out PSNR still gains, mi_grg.protocol.widening; None =
+    WIDEN_CAP),
     progress. Returns float32 [x, y, z] (and, under "heldout", what
     was decided); unknown options raise.
     """
@@ -310,9 +320,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
                     **kw)
 
     if _fixed(stop, holdout_every, oracle, "pdhg"):
-        if start is not None or lam_rule is not None:
-            raise ValueError("pdhg: start (a refinement's start volumes) and lam_rule need "
-                             "stop='heldout'")
+        if start is not None or lam_rule is not None or widen is not None:
+            raise ValueError("pdhg: start (a refinement's start volumes), lam_rule and widen "
+                             "need stop='heldout'")
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
         return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
                    else n_iter, lam=lm, progress=progress)
@@ -324,6 +334,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
                             eval_every=eval_every,
                             max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,
                             holdout_every=holdout_every, oracle=oracle, start=start,
+                            widen=WIDEN_CAP if widen is None else _flag(widen, "widen"),
                             progress=progress)
     info["norm_A"] = {"fitted_views": norms.get(np.asarray(
         case.geometry.angles, np.float64)[info["decision_views"]].tobytes()),

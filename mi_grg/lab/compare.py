@@ -1,6 +1,7 @@
 """Per case, the methods side by side where people compare them: the central z slice of the
 ground truth, FDK, the best fairly stopped classical method (by 3-D PSNR among SART,
-ASD-POCS and PDHG under either weight rule), r2 and gr on one grey scale, and their |error|
+ASD-POCS and PDHG under every weight rule, and PDHG
+from zero at gr's refinement weight), r2 and gr on one grey scale, and their |error|
 maps below (one scale too). ``comparison_section`` gives the report's markdown and writes
 one PNG per case."""
 from __future__ import annotations
@@ -10,9 +11,12 @@ from pathlib import Path
 import numpy as np
 
 #: Held-out-stopped classical runs that compete for the "best classical" column.
-CLASSICAL_BEST = ("sart", "asd-pocs", "pdhg", "pdhg-morozov")
-NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS", "pdhg": "PDHG",
-         "pdhg-morozov": "PDHG (Morozov)", "r2": "r2", "gr": "gr"}
+CLASSICAL_BEST = ("sart", "asd-pocs", "asd-pocs-best", "pdhg", "pdhg-best", "pdhg-morozov",
+                  "pdhg-cold")
+NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS",
+         "asd-pocs-best": "ASD-POCS (best)", "pdhg": "PDHG", "pdhg-best": "PDHG (best)",
+         "pdhg-morozov": "PDHG (Morozov)", "pdhg-cold": "PDHG (cold, gr's weight)",
+         "r2": "r2", "gr": "gr"}
 #: The |error| maps' scale as a fraction of the ground truth's maximum.
 ERROR_FRACTION = 0.25
 

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mi_grg.lab.curves import register_experiment_methods
-from mi_grg.lab.suite import (ALL_METHODS, CURVE_METHODS, EXPERIMENTS, FIXED_ROWS, RULE_ROWS,
-                              NOSTOP_DROP, TRAINED, CaseSpec, Suite)
+from mi_grg.lab.suite import (ALL_METHODS, COLD_FACTOR, COLD_ROW, CURVE_METHODS, EXPERIMENTS,
+                              FIXED_ROWS, RULE_ROWS, NOSTOP_DROP, TRAINED, CaseSpec, Suite)
 
 
 @dataclass
@@ -64,6 +64,17 @@ def canonical_options(method: str, options: dict) -> dict:
     return {k: v for k, v in options.items()
             if not (k in params and params[k].default is not inspect.Parameter.empty
                     and params[k].default == v)}
+
+
+def _cold_options(suite: Suite) -> dict:
+    """PDHG from zero at gr's refinement weight, ``COLD_FACTOR`` x its iteration cap (the
+    suite's gr options or TrainConfig's defaults)."""
+    from mi_grg.training.config import make_config
+    gr = suite.method_options.get("gr", {})
+    proto = make_config("gr").protocol
+    lam = float(gr.get("refine_lam", proto.refine_lam))
+    cap = int(gr.get("refine_max_iterations", proto.refine_max_iterations))
+    return _opts(suite, "pdhg", stop="none", lam=lam, n_iter=COLD_FACTOR * cap)
 
 
 def _opts(suite: Suite, method: str, **extra) -> dict:
@@ -131,9 +142,10 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
                 if m in FIXED_ROWS:
                     add(case, f"{m}-fixed", m, _opts(suite, m, **FIXED_ROWS[m]),
                         f"{m} (fixed {FIXED_ROWS[m]['n_iter']} sweeps)")
-                if m in RULE_ROWS:
-                    run, options, label = RULE_ROWS[m]
+                for run, options, label in RULE_ROWS.get(m, ()):
                     add(case, run, m, _opts(suite, m, **options), label)
+                if m == "gr":
+                    add(case, COLD_ROW[0], "pdhg", _cold_options(suite), COLD_ROW[1])
         elif name == "table2":
             for run, m, o, label in table2_variants():
                 add(case, run, m, _opts(suite, m, **o), label)

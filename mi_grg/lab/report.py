@@ -27,7 +27,8 @@ from mi_grg.lab.report_tables import (_cases, classical_margin, _commands, compl
                                       _paper_fmt, paper_table1_md, PAPER_TABLE2,
                                       PAPER_TABLE3_K, PAPER_TABLE3_SIGMA, per_case_rows,
                                       _runs_summary, SEED_METRICS, seeds_table,
-                                      SHORT_NAMES, _sweep_table, table1_rows, _value)
+                                      SHORT_NAMES, _sweep_table, table1_rows, _value,
+                                      PART_ROWS)
 from mi_grg.lab.report_tables import PAPER_TABLE1  # noqa: F401  (a public name, as before)
 
 
@@ -41,7 +42,7 @@ def summary_lines(out_dir) -> list:
     for c in cases:
         g = _value(idx.get((c, "gr")), "psnr_3d")
         others = {m: _value(idx.get((c, m)), "psnr_3d") for m in METHOD_ORDER
-                  if m != "gr" and not m.endswith("-fixed")}
+                  if m not in ("gr", *PART_ROWS) and not m.endswith("-fixed")}
         others = {m: v for m, v in others.items() if v is not None}
         if g is None or not others:
             continue

@@ -13,20 +13,33 @@ from mi_grg.lab.finished import ROW_TYPES, read_finished, read_runs
 
 DASH = "—"
 CATS = ("HO", "BS", "AO")
-METHOD_ORDER = ("fdk", "sart", "asd-pocs", "pdhg", "pdhg-morozov", "sart-fixed",
-                "asd-pocs-fixed", "r2", "gr-paper", "gr")
-METHOD_NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS", "pdhg": "PDHG (TV)",
+METHOD_ORDER = ("fdk", "sart", "asd-pocs", "asd-pocs-best", "pdhg", "pdhg-best",
+                "pdhg-morozov", "pdhg-cold", "sart-fixed", "asd-pocs-fixed", "r2", "gr-paper",
+                "gr-gaussians", "gr")
+METHOD_NAMES = {"fdk": "FDK", "sart": "SART", "asd-pocs": "ASD-POCS",
+                "asd-pocs-best": "ASD-POCS (TV weight by the best held-out PSNR)",
+                "pdhg": "PDHG (TV)",
+                "pdhg-best": "PDHG (TV, weight by the best held-out PSNR)",
                 "pdhg-morozov": "PDHG (TV, weight by Morozov's rule)",
+                "pdhg-cold": "PDHG from zero at gr's refinement weight, to convergence",
                 "sart-fixed": "SART (fixed 10 sweeps)",
                 "asd-pocs-fixed": "ASD-POCS (fixed 10 sweeps)",
                 "r2": "R2-Gaussian (r2)",
                 "gr-paper": "GR-Gaussian, the paper's configuration (gr-paper)",
+                "gr-gaussians": "gr's trained Gaussians alone (before its result's steps)",
                 "gr": "GR-Gaussian (gr)"}
 #: Names in the summary's time line where the first words of METHOD_NAMES are ambiguous.
-SHORT_NAMES = {"pdhg-morozov": "PDHG (Morozov)", "gr-paper": "GR-Gaussian (paper)"}
+SHORT_NAMES = {"pdhg-morozov": "PDHG (Morozov)", "pdhg-best": "PDHG (best)",
+               "pdhg-cold": "PDHG (cold)", "asd-pocs-best": "ASD-POCS (best)",
+               "gr-paper": "GR-Gaussian (paper)", "gr-gaussians": "gr's Gaussians"}
 #: Classical methods (every row of theirs competes with gr in the summary's margin).
-CLASSICAL = ("fdk", "sart", "asd-pocs", "pdhg", "pdhg-morozov", "sart-fixed",
-             "asd-pocs-fixed")
+CLASSICAL = ("fdk", "sart", "asd-pocs", "asd-pocs-best", "pdhg", "pdhg-best", "pdhg-morozov",
+             "pdhg-cold", "sart-fixed", "asd-pocs-fixed")
+#: Rows that compete in both margins (held-out and fixed): FDK has no sweeps, and the cold
+#: PDHG is gr's own classical step run alone.
+BOTH_MARGINS = ("fdk", "pdhg-cold")
+#: Rows made from another run's record (not runs of their own): name -> (source run, part).
+PART_ROWS = {"gr-gaussians": ("gr", "gaussians")}
 #: Time budgets of the any-time table (seconds).
 BUDGETS = (1, 10, 60, 300)
 
@@ -92,8 +105,25 @@ def load_runs(out_dir) -> dict:
             r["dir"] = str(d)
             r["metrics"] = read_finished(d, r)   # None unless the run reads back
         if rows:
-            result[exp_dir.name] = rows
+            result[exp_dir.name] = rows + part_rows(rows)
     return result
+
+
+def part_rows(rows) -> list:
+    """Rows of ``PART_ROWS``: a step of a run's result as a row of its own (its 3-D PSNR
+    only, from metrics.json's ``method_info.result.parts``), so a hybrid's parts show in
+    the tables beside it."""
+    out = []
+    for name, (source, part) in PART_ROWS.items():
+        for r in rows:
+            if r["run"] != source or not r.get("metrics"):
+                continue
+            info = _dict(_dict(r["metrics"].get("method_info")).get("result"))
+            value = _dict(info.get("parts")).get(part)
+            if isinstance(value, (int, float)):
+                out.append({**r, "run": name, "label": METHOD_NAMES[name],
+                            "metrics": {"psnr_3d": float(value)}})
+    return out
 
 
 def _commands(out_dir) -> list:
@@ -236,9 +266,9 @@ def classical_margin(rows) -> dict:
                 p = _value(r, "psnr_3d")
                 if p is None:
                     continue
-                if m == "fdk" or (kind == "heldout") == _heldout(r):
+                if m in BOTH_MARGINS or (kind == "heldout") == _heldout(r):
                     pool[m] = p
-            if any(m != "fdk" for m in pool):
+            if any(m not in BOTH_MARGINS for m in pool):
                 best = max(pool, key=pool.get)
                 out[kind].append((c, best, g - pool[best]))
     return out
@@ -255,7 +285,7 @@ def per_case_rows(rows) -> tuple[list, list]:
         for run in runs:
             r = idx.get((case, run))
             p, s, t = (_value(r, "psnr_3d"), _value(r, "ssim_3d"), _value(r, "seconds"))
-            line.append(DASH if p is None else f"{p:.2f} / {s:.3f} / {_fmt_time(t)} s")
+            line.append(DASH if p is None else f"{p:.2f} / {_fmt(s, 3)} / {_fmt_time(t)} s")
         body.append(line)
     return header, body
 

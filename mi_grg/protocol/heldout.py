@@ -43,6 +43,7 @@ its time (``oracle_seconds``) is left out of metrics.json's "seconds"
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from dataclasses import dataclass
 
@@ -53,6 +54,7 @@ from mi_grg.protocol.discrepancy import discrepancy_stop, mse, noise_level
 from mi_grg.protocol.early_stop import STOP_RULE, StopRule
 from mi_grg.protocol.search import LogGrid
 from mi_grg.protocol.split import decision_split
+from mi_grg.protocol.widening import Widening
 
 #: ``stop`` option values: "heldout" (this protocol) or "none" (a fixed number of sweeps).
 STOP_MODES = ("heldout", "none")
@@ -84,6 +86,7 @@ class _Decision:
     discrepancy: bool
     start: tuple | None = None   # (decision runs' start volume, final run's) or None
     morozov: bool = False        # the weight by Morozov's rule (``_morozov``)
+    widening: Widening | None = None   # the cap doubles while doubling pays
 
     def __post_init__(self):
         geo = self.case.geometry
@@ -112,6 +115,8 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
         views = psnr_proj_views(pred, d.target)
         per_view.append([sweep, views.tolist()])
         stop = stopper.update(sweep, float(np.nanmean(views))) == "stop"
+        if d.widening is not None and not d.widening.goes_on(stopper.history, sweep):
+            return True
         return stop and not d.morozov     # Morozov reads where the run settles: the cap
 
     t0 = time.perf_counter()
@@ -119,7 +124,8 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
     if d.start is not None:     # the start is sweep 0: a candidate may keep it unchanged
         judge(-1, d.start[0])
         warm = {"init": d.start[0]}
-    run(d.fit_data, d.geo_fit, n_iter=int(max_sweeps), callback=judge, progress=progress,
+    cap = int(max_sweeps) if d.widening is None else d.widening.ceiling
+    run(d.fit_data, d.geo_fit, n_iter=cap, callback=judge, progress=progress,
         **setting, **warm)
     if stopper.kept_iteration < (0 if d.start is not None else 1):
         raise ValueError(f"{name}: no held-out evaluation in {last[0]} iteration(s) "
@@ -130,7 +136,7 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
          "heldout_psnr": values[stopper.kept_iteration],
          "best_heldout_psnr": stopper.best, "best_sweep": stopper.best_iteration,
          "stopped_because": stopper.reason or (
-             f"ran to {last[0]} iteration(s) (the cap n_iter={max_sweeps} or the "
+             f"ran to {last[0]} iteration(s) (the cap n_iter={cap} or the "
              "method's own convergence test) without the rule stopping it"),
          "history": [list(h) for h in stopper.history],
          "heldout_psnr_views": per_view,
@@ -139,6 +145,8 @@ def _decision_run(d: _Decision, run, setting: dict, rule: StopRule, max_sweeps: 
         c["residuals"] = residuals
     if d.discrepancy:
         c["rule_sweep"] = c["kept_sweep"]
+    if d.widening is not None:
+        c["cap_binds"] = d.widening.binds(stopper.history, last[0])
     return c
 
 
@@ -331,7 +339,7 @@ def _check_args(name, grid, max_sweeps, eval_every, start) -> None:
 
 def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
                 eval_every: int = 1, holdout_every: int | None = None, oracle=None,
-                discrepancy: bool = False, start=None,
+                discrepancy: bool = False, start=None, widen: bool = False,
                 progress: bool = True):
     """The protocol of the module docstring for one method.
 
@@ -345,7 +353,9 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
             under "morozov" every candidate runs to ``max_sweeps``).
         project: ``project(volume [x, y, z], geometry, angles) -> [view, v, u]``, the
             method's own forward model (predictions of the held-out views).
-        max_sweeps: cap on iterations per candidate (the rule normally stops earlier).
+        max_sweeps: cap on iterations per candidate (the rule normally stops earlier);
+            with ``widen`` the cap's base, doubled while doubling pays
+            (``mi_grg.protocol.widening``).
         name: the method's name for messages.
         eval_every: iterations between held-out evaluations (1 for a SART sweep).
         holdout_every: None = ``STOP_RULE``'s (gr's and r2's).
@@ -356,6 +366,7 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
             starts from (its ``init`` option), for refining another method's result. The
             decision runs' start must not have been fitted to the held-out views. The
             start itself is a candidate (sweep 0: kept unchanged).
+        widen: the cap widens until it does not bind (``Widening(max_sweeps)``).
     Returns:
         (volume [x, y, z] float32, info dict for metrics.json).
     """
@@ -369,8 +380,9 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     if morozov and discrepancy:
         raise ValueError(f"{name}: the discrepancy sweep rule and Morozov's weight rule "
                          "exclude each other")
+    widening = Widening(int(max_sweeps)) if widen else None
     d = _Decision(case, project, fit, held, int(eval_every), discrepancy,
-                  None if start is None else tuple(start), morozov)
+                  None if start is None else tuple(start), morozov, widening)
     t_start = time.perf_counter()
     candidates, chosen, noise, search = _decide(d, run, grid, rule, max_sweeps, name,
                                                 progress)
@@ -378,7 +390,8 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     decision_seconds = time.perf_counter() - t_start
     k = int(pick["kept_sweep"])
     vol, final_seconds, total_final, curve = _final_run(
-        case, run, pick, max_sweeps, int(eval_every), scoring, progress,
+        case, run, pick, max_sweeps if widening is None else widening.ceiling,
+        int(eval_every), scoring, progress,
         None if start is None else start[1])
     n = int(case.geometry.n_views)
     info = {
@@ -400,6 +413,11 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     }
     if search is not None:
         info["search"] = search
+    if widening is not None:
+        info["cap"] = {**widening.record(), "binds": bool(pick.get("cap_binds"))}
+        if pick.get("cap_binds"):
+            print(f"{name}: the held-out PSNR still rose at the widened cap of "
+                  f"{widening.ceiling} iterations; pass n_iter to run longer", file=sys.stderr)
     info.update(_noise_info(candidates, noise, d))
     if scoring and curve:
         info["oracle"] = _oracle_info(curve, k)
