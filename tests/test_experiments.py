@@ -613,3 +613,20 @@ def test_a_hybrids_parts_are_rows_and_the_cold_classical_step_competes(tmp_path)
     assert by["gr's trained Gaussians alone (before its result's steps)"][3] == "29.50"
     # the Gaussians alone are gr's part, not a competitor: gr is best on both cases
     assert "best 3-D PSNR on 2 of 2 cases" in summary_lines(out)[0]
+
+
+def test_table1_has_a_row_for_every_weight_rule_of_each_classical_method():
+    """Every rule a classical method has, besides its default (the plain row), is a row of
+    Table 1 and a name in the report; the rows' options are the method's rule options."""
+    from mi_grg.classical.iterative import ALPHA_RULES
+    from mi_grg.classical.pdhg import DEFAULT_LAM_RULE
+    from mi_grg.lab.report_tables import CLASSICAL, METHOD_NAMES
+    from mi_grg.lab.suite import RULE_ROWS
+    from mi_grg.protocol.search import RULES
+    pdhg = {o["lam_rule"] for _, o, _ in RULE_ROWS["pdhg"]}
+    assert pdhg == set(RULES) - {DEFAULT_LAM_RULE}
+    asd = {o["alpha_rule"] for _, o, _ in RULE_ROWS["asd-pocs"]}
+    assert asd == set(ALPHA_RULES) - {ALPHA_RULES[0]}
+    for rows in RULE_ROWS.values():
+        for run, _, _ in rows:
+            assert run in CLASSICAL and run in METHOD_NAMES

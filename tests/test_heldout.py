@@ -233,3 +233,22 @@ def test_a_widening_cap_runs_a_slowly_converging_method_past_its_base(capsys):
     vol, info = run_heldout(case, run, [{"flat_from": 10}], max_sweeps=4, name="t",
                             project=forward_project, oracle=False, progress=False)
     assert info["candidates"][0]["sweeps_run"] == 4 and "cap" not in info
+
+
+def test_asd_pocs_alpha_rule_bad_values_say_what_to_do():
+    case, _ = small_case()
+    with pytest.raises(ValueError, match="alpha_rule must be one of"):
+        reconstruct_asd_pocs(case, alpha_rule="morozov", progress=False)
+    with pytest.raises(ValueError, match="needs stop='heldout'"):
+        reconstruct_asd_pocs(case, stop="none", alpha_rule="best", progress=False)
+    with pytest.raises(ValueError, match="leaves nothing to choose"):
+        reconstruct_asd_pocs(case, alpha=0.02, alpha_rule="best", progress=False)
+
+
+def test_asd_pocs_best_rule_takes_the_highest_heldout_candidate():
+    case, _ = small_case(views=16)
+    vol, info = reconstruct_asd_pocs(case, alpha=[0.002, 0.02], alpha_rule="best",
+                                     n_iter=4, oracle=False, progress=False)
+    best = max(info["candidates"], key=lambda c: c["heldout_psnr"])
+    assert info["chosen"]["setting"] == best["setting"]
+    assert info["search"]["rule"] == "best held-out PSNR"

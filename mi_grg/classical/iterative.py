@@ -367,8 +367,9 @@ HELDOUT_SWEEP_CAP = 20
 #: half-decades above it (the TV step as a fraction of the first SART update); the search
 #: widens past whichever end wins (``weight_grid``).
 ALPHA_GRID = (0.002, 0.006, 0.02, 0.06)
-#: ASD-POCS's weight rules (``alpha_rule``; mi_grg.protocol.search.RULES): Morozov's weight
-#: rule and the discrepancy sweep rule ASD-POCS stops by exclude each other.
+#: ASD-POCS's weight rules (``alpha_rule``; mi_grg.protocol.search.RULES), the default
+#: first: Morozov's weight rule and the discrepancy sweep rule ASD-POCS stops by exclude
+#: each other.
 ALPHA_RULES = ("one_se", "best")
 #: Values a weight search may add past each end of its grid (half-decades: two decades).
 GRID_EXTEND = 4
@@ -487,7 +488,7 @@ def reconstruct_asd_pocs(case, *, stop: str = "heldout", n_iter=None, tv_iters: 
     if alpha_rule is not None and alpha_rule not in ALPHA_RULES:
         raise ValueError(f"asd-pocs: alpha_rule must be one of {', '.join(ALPHA_RULES)}, "
                          f"got {alpha_rule!r}")
-    grid = weight_grid(alpha, "alpha", ALPHA_GRID, alpha_rule or "one_se")
+    grid = weight_grid(alpha, "alpha", ALPHA_GRID, alpha_rule or ALPHA_RULES[0])
     if alpha_rule is not None and not isinstance(grid, LogGrid):
         raise ValueError(f"asd-pocs: alpha_rule={alpha_rule!r} chooses among a grid of "
                          f"alpha; alpha={alpha!r} leaves nothing to choose")

@@ -63,6 +63,8 @@ EVAL_EVERY = 5
 #: lam (TV weight / max(A^T b)) tried first under ``stop="heldout"``; the search widens
 #: past whichever end wins (``mi_grg.classical.iterative.weight_grid``).
 LAM_GRID = (0.001, 0.003, 0.01)
+#: How ``stop="heldout"`` chooses lam when ``lam_rule`` is not given (docs/bench/pdhg_rules.md).
+DEFAULT_LAM_RULE = "one_se"
 #: Default lam under ``stop="none"``.
 FIXED_LAM = 0.003
 
@@ -294,8 +296,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     mi_grg.protocol.heldout; "none": n_iter iterations at one lam), n_iter (cap under
     "heldout", HELDOUT_ITERATION_CAP; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
     under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), lam_rule
-    (how "heldout" chooses lam from a grid: None / "one_se", the one-standard-error rule, or
-    "morozov", Morozov's discrepancy principle: mi_grg.protocol.search.RULES), gamma
+    (how "heldout" chooses lam from a grid: "one_se", the one-standard-error rule, "best",
+    the best held-out PSNR, or "morozov", Morozov's discrepancy principle:
+    mi_grg.protocol.search.RULES; None = DEFAULT_LAM_RULE), gamma
     (primal/dual step balance, DEFAULT_GAMMA), upper (None), nonneg (True), power_iters
     (8), eval_every, holdout_every (None = gr's), oracle (None = score iterations when a
     ground truth exists), start (None; or, to refine another method's result under
@@ -326,7 +329,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
         return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
                    else n_iter, lam=lm, progress=progress)
-    grid = weight_grid(lam, "lam", LAM_GRID, "one_se" if lam_rule is None else lam_rule)
+    grid = weight_grid(lam, "lam", LAM_GRID, DEFAULT_LAM_RULE if lam_rule is None else lam_rule)
     if lam_rule is not None and not isinstance(grid, LogGrid):
         raise ValueError(f"pdhg: lam_rule={lam_rule!r} chooses among a grid of lam; lam="
                          f"{lam!r} leaves nothing to choose")
