@@ -46,8 +46,8 @@ CASES = {
 }
 LAMS = (0.0001, 0.0003, 0.001, 0.003, 0.01, 0.03, 0.1)
 FIXED_CAPS = (60, 120, 240, 480)
-WIDEN_GAINS = (0.01, 0.02, 0.05, 0.1)
-RULE_NAMES = ("best", "one_se", "morozov")
+WIDEN_GAINS = (0.02, 0.05, 0.1, 0.2, 0.5)
+RULE_NAMES = ("best", "one_se", "one_se_paired", "morozov", "disc_best", "disc_one_se")
 #: |log(recorded lam / grid lam)| up to which a recorded curve stands in for a grid value.
 NEAR = 0.12
 
@@ -138,8 +138,30 @@ def _candidate(c: dict, lam: float, cap, ee: int, rule: str) -> dict:
             last = None       # the recorded curve ended before the rule did
     values = dict(stopper.history)
     return {"setting": {"lam": lam}, "sweeps_run": last, "kept_sweep": stopper.kept_iteration,
+            "rule_sweep": stopper.kept_iteration,
             "heldout_psnr": values[stopper.kept_iteration], "history": stopper.history,
             "heldout_psnr_views": per_view, "residuals": residuals}
+
+
+def _one_se_paired(cands: list) -> int:
+    """A candidate rule (not in the package): the one-standard-error rule with the standard
+    error of each candidate's per-view PSNR difference to the best (paired over the same
+    held-out views) instead of the spread of the best's per-view PSNRs."""
+    from mi_grg.protocol.heldout import _choose
+    best = _choose(cands, False, "best", False)[0]
+
+    def views(c):
+        return np.asarray(dict((s, v) for s, v in map(tuple, c["heldout_psnr_views"]))[
+            c["kept_sweep"]], np.float64)
+    vb = views(cands[best])
+    order = sorted(range(len(cands)), key=lambda i: cands[i]["setting"]["lam"])
+    within = []
+    for i in order:
+        d = vb - views(cands[i])
+        se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else 0.0
+        if float(np.mean(d)) <= se:
+            within.append(i)
+    return within[-1]
 
 
 def replay(rec: dict, rule: str, cap) -> dict:
@@ -150,7 +172,8 @@ def replay(rec: dict, rule: str, cap) -> dict:
     from mi_grg.protocol.search import LogGrid
     ee = rec["eval_every"]
     have = {float(k): v for k, v in rec["lams"].items()}
-    grid = LogGrid("lam", list(LAM_GRID), max_extend=GRID_EXTEND, rule=rule)
+    grid = LogGrid("lam", list(LAM_GRID), max_extend=GRID_EXTEND,
+                   rule={"one_se_paired": "one_se"}.get(rule, rule.replace("disc_", "")))
     pending, cands, near = list(grid.values), [], False
     while pending:
         for lam in pending:
@@ -162,7 +185,12 @@ def replay(rec: dict, rule: str, cap) -> dict:
             near |= abs(math.log(key / lam)) > 1e-6
             cands.append(_candidate(have[key], key, cap, ee, rule))
             cands[-1]["grid_lam"] = lam
-        chosen, _ = _choose(cands, False, rule, False)
+        if rule == "one_se_paired":
+            chosen = _one_se_paired(cands)
+        elif rule.startswith("disc_"):      # sweeps by the discrepancy principle
+            chosen = _choose(cands, True, rule[5:], False)[0]
+        else:
+            chosen = _choose(cands, False, rule, False)[0]
         nxt = grid.next_value(cands[chosen]["grid_lam"])
         pending = [] if nxt is None else [nxt]
     pick = cands[chosen]

@@ -326,7 +326,18 @@ def _noise_info(candidates: list, noise, d: _Decision) -> dict:
         str(i): c["discrepancy_sweep"] for i, c in enumerate(candidates)}}}
 
 
-def _check_args(name, grid, max_sweeps, eval_every, start) -> None:
+def _cap_info(widening: Widening, pick: dict, name: str) -> dict:
+    """The widened cap's record; stderr says when it still bound the chosen candidate."""
+    if pick.get("cap_binds"):
+        print(f"{name}: the held-out PSNR still rose at the widened cap of "
+              f"{widening.ceiling} iterations; pass n_iter to run longer", file=sys.stderr)
+    return {**widening.record(), "binds": bool(pick.get("cap_binds"))}
+
+
+def _check_args(name, grid, max_sweeps, eval_every, start, discrepancy) -> None:
+    if isinstance(grid, LogGrid) and grid.rule == "morozov" and discrepancy:
+        raise ValueError(f"{name}: the discrepancy sweep rule and Morozov's weight rule "
+                         "exclude each other")
     if int(max_sweeps) < 1:
         raise ValueError(f"n_iter (the sweep cap) must be >= 1, got {max_sweeps}")
     if int(eval_every) < 1:
@@ -371,15 +382,12 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
         (volume [x, y, z] float32, info dict for metrics.json).
     """
     rule = STOP_RULE if holdout_every is None else StopRule(holdout_every=int(holdout_every))
-    _check_args(name, grid, max_sweeps, eval_every, start)
+    _check_args(name, grid, max_sweeps, eval_every, start, discrepancy)
     scoring = oracle if oracle is not None else case.vol_gt is not None
     if scoring and case.vol_gt is None:
         raise ValueError(f"{name}: oracle=True needs a ground truth (vol_gt.npy)")
     fit, held = decision_split(case.geometry.n_views, rule.holdout_every, name)
     morozov = isinstance(grid, LogGrid) and grid.rule == "morozov"
-    if morozov and discrepancy:
-        raise ValueError(f"{name}: the discrepancy sweep rule and Morozov's weight rule "
-                         "exclude each other")
     widening = Widening(int(max_sweeps)) if widen else None
     d = _Decision(case, project, fit, held, int(eval_every), discrepancy,
                   None if start is None else tuple(start), morozov, widening)
@@ -391,8 +399,7 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     k = int(pick["kept_sweep"])
     vol, final_seconds, total_final, curve = _final_run(
         case, run, pick, max_sweeps if widening is None else widening.ceiling,
-        int(eval_every), scoring, progress,
-        None if start is None else start[1])
+        int(eval_every), scoring, progress, None if start is None else start[1])
     n = int(case.geometry.n_views)
     info = {
         "protocol": "heldout",
@@ -414,10 +421,7 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
     if search is not None:
         info["search"] = search
     if widening is not None:
-        info["cap"] = {**widening.record(), "binds": bool(pick.get("cap_binds"))}
-        if pick.get("cap_binds"):
-            print(f"{name}: the held-out PSNR still rose at the widened cap of "
-                  f"{widening.ceiling} iterations; pass n_iter to run longer", file=sys.stderr)
+        info["cap"] = _cap_info(widening, pick, name)
     info.update(_noise_info(candidates, noise, d))
     if scoring and curve:
         info["oracle"] = _oracle_info(curve, k)
