@@ -63,8 +63,9 @@ def _case(name: str, n: int, data_root: Path):
     return suite_case(spec, data_root), which
 
 
-def curves(name: str, n: int, lams, max_iter: int, data_root: Path) -> dict:
-    """The fitted-view and all-view curves of every lam (module docstring)."""
+def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None) -> dict:
+    """The fitted-view and all-view curves of every lam (module docstring); ``on_lam(rec)``
+    after each lam (so an interrupted study keeps what it measured)."""
     from mi_grg.classical.pdhg import EVAL_EVERY, PDHG, operator_norm
     from mi_grg.classical.iterative import _to_numpy
     from mi_grg.core.joseph import JosephProjector, forward_project
@@ -105,6 +106,8 @@ def curves(name: str, n: int, lams, max_iter: int, data_root: Path) -> dict:
         rec["lams"][repr(float(lam))] = {
             "heldout_views": views, "heldout_mse": held_mse, "fit_mse": fit_mse,
             "psnr_3d": p3, "seconds_fit": t_fit, "seconds_all": time.perf_counter() - t0}
+        if on_lam is not None:
+            on_lam(rec)
         print(f"{name} lam {lam:g}: best 3-D {max(p3):.2f} at {EVAL_EVERY * (1 + int(np.argmax(p3)))}"
               f" ({t_fit:.0f} + {time.perf_counter() - t0:.0f} s)", flush=True)
     return rec
@@ -241,24 +244,36 @@ def summarise(recs: list) -> dict:
 def markdown(summary: dict) -> str:
     lines = ["# PDHG's weight rule and iteration cap (`experiments/studies/pdhg_rules.py`)",
              "", "3-D PSNR (dB) of PDHG from zero under each rule (lam by the rule on the "
-             "fitted views, sweeps by the held-out rule), replayed on recorded curves; "
-             "*oracle* = the best lam and iteration count chosen with the ground truth. "
-             "Tuning cases chose the default; confirmation cases only report it.", ""]
-    keys = list(next(iter(summary["cases"].values()))["rules"])
-    lines.append("| case | set | oracle (lam, it.) | " + " | ".join(keys) + " |")
-    lines.append("|---|---|---|" + "---|" * len(keys))
-    for name, v in summary["cases"].items():
-        o = v["oracle"]
-        cells = []
-        for k in keys:
-            r = v["rules"][k]
-            cells.append(r["error"] if "error" in r else
-                         f"{r['psnr_3d']:.2f} ({r['lam']:g}, {r['sweeps']})")
-        lines.append(f"| {name} | {v['set']} | {o['psnr_3d']:.2f} ({o['lam']:g}, "
-                     f"{o['sweeps']}) | " + " | ".join(cells) + " |")
-    for which, m in summary["means"].items():
-        lines.append(f"| **mean, {which}** | | {m['oracle']:.2f} | " + " | ".join(
-            f"{m[k]:.2f}" if k in m else "-" for k in keys) + " |")
+             "fitted views, sweeps by the held-out stop rule unless said), replayed on "
+             "recorded curves (`rule@cap`: the cap fixed, or `widen:g`, doubled while a "
+             "doubling gains more than g dB of held-out PSNR); in brackets lam and "
+             "iterations; *oracle* = the best lam and iteration count chosen with the "
+             "ground truth (within the recorded iterations). Tuning cases chose the "
+             "default; confirmation cases only report it. Rules: best (best held-out "
+             "PSNR), one_se (one standard error of the best's per-view PSNRs), "
+             "one_se_paired (of the paired per-view differences; a candidate, not in the "
+             "package), morozov, disc_* (sweeps by the discrepancy principle, lam by the "
+             "rule after it).", ""]
+    cases = summary["cases"]
+    keys = list(next(iter(cases.values()))["rules"])
+    rules = list(dict.fromkeys(k.split("@")[0] for k in keys))
+    for rule in rules:
+        cols = [k for k in keys if k.split("@")[0] == rule]
+        lines += [f"## {rule}", "", "| case | set | oracle (lam, it.) | " + " | ".join(
+            k.split("@")[1] for k in cols) + " |", "|---|---|---|" + "---|" * len(cols)]
+        for name, v in cases.items():
+            o = v["oracle"]
+            cells = []
+            for k in cols:
+                r = v["rules"][k]
+                cells.append(r["error"] if "error" in r else
+                             f"{r['psnr_3d']:.2f} ({r['lam']:g}, {r['sweeps']})")
+            lines.append(f"| {name} | {v['set']} | {o['psnr_3d']:.2f} ({o['lam']:g}, "
+                         f"{o['sweeps']}) | " + " | ".join(cells) + " |")
+        for which, m in summary["means"].items():
+            lines.append(f"| **mean, {which}** | | {m['oracle']:.2f} | " + " | ".join(
+                f"{m[k]:.2f}" if k in m else "-" for k in cols) + " |")
+        lines.append("")
     return "\n".join(lines) + "\n"
 
 
@@ -278,10 +293,11 @@ def main(argv=None) -> int:
         import mitsuba as mi
         mi.set_variant("llvm_ad_mono")
         for name in args.cases.split(","):
-            rec = curves(name, args.n, [float(x) for x in args.lams.split(",")],
-                         args.max_iter, Path(args.data))
-            store["curves"][f"{name}_{args.n}"] = rec
-            path.write_text(json.dumps(store))
+            def save(rec, key=f"{name}_{args.n}"):
+                store["curves"][key] = rec
+                path.write_text(json.dumps(store))
+            save(curves(name, args.n, [float(x) for x in args.lams.split(",")],
+                        args.max_iter, Path(args.data), save))
     store["summary"] = summarise(list(store["curves"].values()))
     path.write_text(json.dumps(store))
     (OUT / "pdhg_rules.md").write_text(markdown(store["summary"]))
