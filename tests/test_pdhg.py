@@ -107,3 +107,12 @@ def test_contract_and_bad_options(rng):
         reconstruct_pdhg(case, stop="none", lam=[0.0, 0.1])
     with pytest.raises(ValueError, match="gamma"):
         pdhg(case.train, geo, gamma=0.0)
+    with pytest.raises(ValueError, match="widen"):
+        reconstruct_pdhg(case, stop="none", widen=True)
+    with pytest.raises(ValueError, match="true or false"):
+        reconstruct_pdhg(case, widen="yes")
+    # widen: n_iter is the cap's base, recorded with the choice
+    vol, info = reconstruct_pdhg(case, n_iter=4, eval_every=2, lam=[0.0, 0.01], widen=True,
+                                 progress=False)
+    assert info["cap"]["base"] == 4 and max(
+        c["sweeps_run"] for c in info["candidates"]) >= 4
