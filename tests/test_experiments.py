@@ -483,8 +483,8 @@ def test_seeds_plan_shares_seed_0_with_table1(tmp_path):
     t1 = {s.run: s for s in plan_experiment("table1", suite) if s.case.name == "shepp"}
     assert runs["gr_s0"].key() == t1["gr"].key() != runs["gr_s4"].key()
     res = run_experiment("all", path, tmp_path / "out", dry_run=True)
-    # table1 (r2, gr, gr-paper on 2 cases) + the two s4 runs
-    assert res["duplicate"] == 2 and res["todo"] == 3 * 2 + 2
+    # table1 (r2, gr, gr-paper and gr's cold PDHG part on 2 cases) + the two s4 runs
+    assert res["duplicate"] == 2 and res["todo"] == 4 * 2 + 2
 
 
 def test_unknown_experiment_key_is_an_error(tmp_path):

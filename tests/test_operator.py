@@ -54,6 +54,12 @@ def test_operator_angles_select_views():
     np.testing.assert_array_equal(A(x), forward_project(x, geo)[[1, 4]])
 
 
+def _same_to_rounding(actual, desired):
+    desired = np.asarray(desired, np.float32)
+    np.testing.assert_allclose(np.asarray(actual, np.float32), desired, rtol=1e-6,
+                               atol=1e-6 * float(np.abs(desired).max()))
+
+
 def test_gaussian_operator_is_project_dr_and_has_no_adjoint():
     rng = np.random.default_rng(5)
     geo = _geometry()
@@ -62,11 +68,10 @@ def test_gaussian_operator_is_project_dr_and_has_no_adjoint():
     A = mi_grg.operator(geo, kind="gaussians", extent=3.0, density_scale=scale)
     out = A(g)
     assert isinstance(out, mi.TensorXf) and tuple(out.shape) == A.range_shape
-    np.testing.assert_array_equal(np.asarray(out.numpy()),
-                                  np.asarray(project_dr(g, geo, extent=3.0,
-                                                        density_scale=scale).numpy()))
+    # the same kernel; its scatter-adds sum in thread order, so equal to float32 rounding
+    _same_to_rounding(out.numpy(), project_dr(g, geo, extent=3.0, density_scale=scale).numpy())
     plain = mi_grg.operator(geo, kind="gaussians")(g)
-    np.testing.assert_array_equal(np.asarray(plain.numpy()), project(g, geo))
+    _same_to_rounding(plain.numpy(), project(g, geo))
     assert A.domain_shape is None
     with pytest.raises(ValueError, match="no adjoint"):
         A.T
