@@ -6,12 +6,15 @@ For each case: gr's default training; the Gaussians alone (centre samples), voxe
 the anchored refinement's grid, the exported Gaussians (= vol_pred); the replaced default
 (Morozov's weight, held-out length, a voxel grid) when ``--old-refine`` names its module
 (``git show d7f240b:mi_grg/training/refine.py > /tmp/old_refine.py``); cold PDHG at the
-refinement's weight from zero, its 3-D PSNR at 60 ... 1000 iterations (converged by 750).
+refinement's weight from zero, its 3-D PSNR at 60 ... 1000 iterations (converged by 750);
+PDHG as ``--method pdhg`` runs it under each of its weight rules (``PDHG_RULES``).
 Tuning cases chose the defaults (voxel_average 0.75, refine_lam 0.003); confirmation cases
 (other seeds, shared/data volumes) were run once with them.
 
     MI_GRG_DATA=/work/shared/data python experiments/studies/field_result.py \\
         --cases needles needles7 --data /tmp/field_data --old-refine /tmp/old_refine.py
+    MI_GRG_DATA=/work/shared/data python experiments/studies/field_result.py \\
+        --cases needles7 --n 128 --data /tmp/field_data          # 128^3, detector 192^2
 
 Writes docs/bench/field_result.json (one record per case, merged with earlier ones) and
 docs/bench/field_result.md.
@@ -38,7 +41,25 @@ CASES = {
 COLD_AT = (60, 100, 200, 300, 500, 750, 1000)
 
 
-def run_case(name: str, data_root: Path, old_refine) -> dict:
+#: PDHG's own weight rules (``lam_rule``), each under its held-out protocol from zero.
+PDHG_RULES = ("one_se", "best", "morozov")
+
+
+def pdhg_rules(case) -> dict:
+    """PDHG as ``--method pdhg`` runs it, under each of its weight rules."""
+    import mi_grg
+    out = {}
+    for rule in PDHG_RULES:
+        t0 = time.perf_counter()
+        _, m = mi_grg.reconstruct(case, "pdhg", lam_rule=rule, progress=False)
+        chosen = m.get("method_info", {}).get("chosen", {})
+        out[rule] = {"psnr": m["psnr_3d"], "seconds": time.perf_counter() - t0,
+                     "lam": chosen.get("setting", {}).get("lam"),
+                     "iterations": chosen.get("sweeps")}
+    return out
+
+
+def run_case(name: str, data_root: Path, old_refine, n: int = 64) -> dict:
     from mi_grg.classical.pdhg import PDHG
     from mi_grg.evaluation.metrics import psnr_3d
     from mi_grg.lab.runner import suite_case
@@ -48,13 +69,14 @@ def run_case(name: str, data_root: Path, old_refine) -> dict:
     from mi_grg.training.trainer import Trainer
     src, seed, which = CASES[name]
     src = str(DATA / src) if src.endswith(".npy") else src
-    spec = CaseSpec(name=name, category="-", source=src, views=25, test_views=25, n=64,
-                    det=96, noise={"I0": 1e4, "electronic_std": 10.0}, seed=seed)
+    spec = CaseSpec(name=name, category="-", source=src, views=25, test_views=25, n=n,
+                    det=int(1.5 * n), noise={"I0": 1e4, "electronic_std": 10.0}, seed=seed,
+                    data_name=f"{name}_{n}")
     case = suite_case(spec, data_root)
 
     def ps(v):
         return float(psnr_3d(v, case.vol_gt))
-    rec = {"case": name, "set": which}
+    rec = {"case": name, "set": which, "n": n}
     t0 = time.perf_counter()
     cfg = make_config("gr")
     tr = Trainer(case, cfg, progress=False)
@@ -82,13 +104,15 @@ def run_case(name: str, data_root: Path, old_refine) -> dict:
             curve.append((it, ps(np.asarray(s.x.numpy(), np.float32).reshape(geo.nVoxel))))
     rec["cold_pdhg"] = {"lam": cfg.protocol.refine_lam, "curve": curve,
                         "seconds": time.perf_counter() - t0}
+    rec["pdhg_rules"] = pdhg_rules(case)
     return rec
 
 
 def markdown(records: dict) -> str:
-    head = ("| case | set | Gaussians alone | voxel-averaged | refined grid | **gr (export = "
-            "vol_pred)** | replaced default | cold PDHG lam 0.003, 60 / 1000 it. | refine "
-            "iterations (cap) | result s |\n|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| case | n | set | Gaussians alone | voxel-averaged | refined grid | **gr (export "
+            "= vol_pred)** | replaced default | cold PDHG lam 0.003, 60 / 300 / 1000 it. (best)"
+            " | PDHG one-SE / best / Morozov | refine iterations (cap) | train + result s |"
+            "\n|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = [head]
     for which in ("tuning", "confirmation"):
         for r in (r for r in records.values() if r["set"] == which):
@@ -96,11 +120,15 @@ def markdown(records: dict) -> str:
             cold = dict(r["cold_pdhg"]["curve"])
             old = r.get("old_default", {}).get("psnr")
             ref = n["refine"]
+            rules = r.get("pdhg_rules")
+            rules = " / ".join(f"{rules[k]['psnr']:.2f}" for k in PDHG_RULES) if rules else "-"
             rows.append(
-                f"| {r['case']} | {which} | {p['gaussians']:.2f} | {p['voxel_averaged']:.2f} | "
-                f"{p['refined_grid']:.2f} | **{n['psnr']:.2f}** | "
-                f"{'-' if old is None else f'{old:.2f}'} | {cold[60]:.2f} / {cold[1000]:.2f} | "
-                f"{ref.get('iterations')} ({ref.get('cap')}) | {n['seconds']:.0f} |")
+                f"| {r['case']} | {r.get('n', 64)} | {which} | {p['gaussians']:.2f} | "
+                f"{p['voxel_averaged']:.2f} | {p['refined_grid']:.2f} | **{n['psnr']:.2f}** | "
+                f"{'-' if old is None else f'{old:.2f}'} | {cold[60]:.2f} / {cold[300]:.2f} / "
+                f"{cold[1000]:.2f} ({max(cold.values()):.2f}) | {rules} | "
+                f"{ref.get('iterations')} ({ref.get('cap')}) | "
+                f"{r['train_seconds']:.0f} + {n['seconds']:.0f} |")
     for which in ("tuning", "confirmation"):
         rs = [r for r in records.values() if r["set"] == which and "old_default" in r]
         if rs:
@@ -113,6 +141,7 @@ def markdown(records: dict) -> str:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--n", type=int, default=64, help="volume size (detector 1.5 n)")
     ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
     ap.add_argument("--old-refine", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "field_result")
@@ -125,10 +154,11 @@ def main():
     path = a.out.with_suffix(".json")
     records = json.loads(path.read_text()) if path.exists() else {}
     for name in a.cases:
-        records[name] = run_case(name, a.data, old)
+        key = name if a.n == 64 else f"{name}_{a.n}"
+        records[key] = run_case(name, a.data, old, a.n)
         path.write_text(json.dumps(records, indent=1))
         a.out.with_suffix(".md").write_text(markdown(records))
-        print(json.dumps(records[name]))
+        print(json.dumps(records[key]))
 
 
 if __name__ == "__main__":

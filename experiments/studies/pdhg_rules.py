@@ -63,9 +63,11 @@ def _case(name: str, n: int, data_root: Path):
     return suite_case(spec, data_root), which
 
 
-def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None) -> dict:
+def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None,
+           recorded=None) -> dict:
     """The fitted-view and all-view curves of every lam (module docstring); ``on_lam(rec)``
-    after each lam (so an interrupted study keeps what it measured)."""
+    after each lam (so an interrupted study keeps what it measured). ``recorded``: an earlier
+    record of the same case and ``max_iter``, whose lams are kept and not run again."""
     from mi_grg.classical.pdhg import EVAL_EVERY, PDHG, operator_norm
     from mi_grg.classical.iterative import _to_numpy
     from mi_grg.core.joseph import JosephProjector, forward_project
@@ -82,7 +84,12 @@ def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None)
              "all": operator_norm(JosephProjector(geo), geo.angles, 8)}
     rec = {"case": name, "set": which, "n": n, "eval_every": EVAL_EVERY,
            "max_iter": max_iter, "lams": {}}
+    if recorded is not None and (recorded["max_iter"], recorded["eval_every"]) == (
+            max_iter, EVAL_EVERY):
+        rec["lams"] = dict(recorded["lams"])
     for lam in lams:
+        if repr(float(lam)) in rec["lams"]:
+            continue
         t0 = time.perf_counter()
         s = PDHG(case.train[fit], gfit, gfit.angles, lam=lam, norm_A=norms["fit"])
         views, held_mse, fit_mse = [], [], []
@@ -297,7 +304,8 @@ def main(argv=None) -> int:
                 store["curves"][key] = rec
                 path.write_text(json.dumps(store))
             save(curves(name, args.n, [float(x) for x in args.lams.split(",")],
-                        args.max_iter, Path(args.data), save))
+                        args.max_iter, Path(args.data), save,
+                        store["curves"].get(f"{name}_{args.n}")))
     store["summary"] = summarise(list(store["curves"].values()))
     path.write_text(json.dumps(store))
     (OUT / "pdhg_rules.md").write_text(markdown(store["summary"]))
