@@ -263,6 +263,7 @@ def markdown(summary: dict) -> str:
              "rule after it).", ""]
     cases = summary["cases"]
     keys = list(next(iter(cases.values()))["rules"])
+    lines += _summary_at(summary, "60")
     rules = list(dict.fromkeys(k.split("@")[0] for k in keys))
     for rule in rules:
         cols = [k for k in keys if k.split("@")[0] == rule]
@@ -282,6 +283,32 @@ def markdown(summary: dict) -> str:
                 f"{m[k]:.2f}" if k in m else "-" for k in cols) + " |")
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _summary_at(summary: dict, cap: str) -> list:
+    """Each rule's mean at one cap per set, and its mean distance to the best rule of each
+    case (the per-case maximum over the rules that every case could replay)."""
+    cases = summary["cases"]
+    rules = [r for r in RULE_NAMES
+             if all("psnr_3d" in v["rules"][f"{r}@{cap}"] for v in cases.values())]
+    lines = [f"## Summary at cap {cap}", "", "Mean 3-D PSNR (dB) per set; in brackets the "
+             "mean distance to the best of these rules on each case.", "",
+             "| rule | " + " | ".join(
+                 f"{w} ({sum(v['set'] == w for v in cases.values())} cases)"
+                 for w in ("tuning", "confirmation")) + " |", "|---|---|---|"]
+    for rule in rules:
+        cells = []
+        for which in ("tuning", "confirmation"):
+            vs = [v for v in cases.values() if v["set"] == which]
+            if not vs:
+                cells.append("-")
+                continue
+            got = [v["rules"][f"{rule}@{cap}"]["psnr_3d"] for v in vs]
+            best = [max(v["rules"][f"{r}@{cap}"]["psnr_3d"] for r in rules) for v in vs]
+            cells.append(f"{statistics.mean(got):.2f} "
+                         f"({statistics.mean(g - b for g, b in zip(got, best)):+.2f})")
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def main(argv=None) -> int:
