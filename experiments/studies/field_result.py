@@ -59,20 +59,26 @@ def pdhg_rules(case) -> dict:
     return out
 
 
-def run_case(name: str, data_root: Path, old_refine, n: int = 64) -> dict:
-    from mi_grg.classical.pdhg import PDHG
-    from mi_grg.evaluation.metrics import psnr_3d
+def make_case(name: str, n: int, data_root: Path, cases=None) -> tuple:
+    """(the case ``name`` of ``cases`` (None: ``CASES``) at n^3, detector 1.5 n, 25 noisy
+    views; its set)."""
     from mi_grg.lab.runner import suite_case
     from mi_grg.lab.suite import CaseSpec
-    from mi_grg.training import result
-    from mi_grg.training.config import make_config
-    from mi_grg.training.trainer import Trainer
-    src, seed, which = CASES[name]
+    src, seed, which = (CASES if cases is None else cases)[name]
     src = str(DATA / src) if src.endswith(".npy") else src
     spec = CaseSpec(name=name, category="-", source=src, views=25, test_views=25, n=n,
                     det=int(1.5 * n), noise={"I0": 1e4, "electronic_std": 10.0}, seed=seed,
                     data_name=f"{name}_{n}")
-    case = suite_case(spec, data_root)
+    return suite_case(spec, data_root), which
+
+
+def run_case(name: str, data_root: Path, old_refine, n: int = 64) -> dict:
+    from mi_grg.classical.pdhg import PDHG
+    from mi_grg.evaluation.metrics import psnr_3d
+    from mi_grg.training import result
+    from mi_grg.training.config import make_config
+    from mi_grg.training.trainer import Trainer
+    case, which = make_case(name, n, data_root)
 
     def ps(v):
         return float(psnr_3d(v, case.vol_gt))

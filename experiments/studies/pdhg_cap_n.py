@@ -16,19 +16,12 @@ import json
 import time
 from pathlib import Path
 
-from field_result import CASES, DATA, ROOT
+from field_result import CASES, ROOT, make_case
 
 
 def run(name: str, n: int, cap: int, data_root: Path) -> dict:
     import mi_grg
-    from mi_grg.lab.runner import suite_case
-    from mi_grg.lab.suite import CaseSpec
-    src, seed, which = CASES[name]
-    src = str(DATA / src) if src.endswith(".npy") else src
-    spec = CaseSpec(name=name, category="-", source=src, views=25, test_views=25, n=n,
-                    det=int(1.5 * n), noise={"I0": 1e4, "electronic_std": 10.0}, seed=seed,
-                    data_name=f"{name}_{n}")
-    case = suite_case(spec, data_root)
+    case, which = make_case(name, n, data_root)
     t0 = time.perf_counter()
     _, m = mi_grg.reconstruct(case, "pdhg", n_iter=cap, progress=False)
     chosen = m["method_info"]["chosen"]

@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("MI_GRG_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "docs" / "bench"
 #: name: (source, seed, set). Tuning cases choose; confirmation cases only report.
 CASES = {
@@ -53,14 +52,8 @@ NEAR = 0.12
 
 
 def _case(name: str, n: int, data_root: Path):
-    from mi_grg.lab.runner import suite_case
-    from mi_grg.lab.suite import CaseSpec
-    src, seed, which = CASES[name]
-    src = str(DATA / src) if src.endswith(".npy") else src
-    spec = CaseSpec(name=name, category="-", source=src, views=25, test_views=25, n=n,
-                    det=int(1.5 * n), noise={"I0": 1e4, "electronic_std": 10.0}, seed=seed,
-                    data_name=f"{name}_{n}")
-    return suite_case(spec, data_root), which
+    from field_result import make_case
+    return make_case(name, n, data_root, CASES)
 
 
 def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None,
