@@ -13,21 +13,14 @@ Writes docs/bench/pdhg_cap_n.json (merged per case, size and cap) and .md.
 """
 import argparse
 import json
-import time
 from pathlib import Path
 
-from field_result import CASES, ROOT, make_case
+from field_result import CASES, ROOT, make_case, pdhg_run
 
 
 def run(name: str, n: int, cap: int, data_root: Path) -> dict:
-    import mi_grg
     case, which = make_case(name, n, data_root)
-    t0 = time.perf_counter()
-    _, m = mi_grg.reconstruct(case, "pdhg", n_iter=cap, progress=False)
-    chosen = m["method_info"]["chosen"]
-    return {"case": name, "set": which, "n": n, "cap": cap, "psnr": m["psnr_3d"],
-            "lam": chosen["setting"].get("lam"), "iterations": chosen["sweeps"],
-            "seconds": time.perf_counter() - t0}
+    return {"case": name, "set": which, "n": n, "cap": cap, **pdhg_run(case, n_iter=cap)}
 
 
 def markdown(records: dict) -> str:

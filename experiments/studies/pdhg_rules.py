@@ -289,17 +289,18 @@ def _summary_at(summary: dict, cap: str) -> list:
              "| rule | " + " | ".join(
                  f"{w} ({sum(v['set'] == w for v in cases.values())} cases)"
                  for w in ("tuning", "confirmation")) + " |", "|---|---|---|"]
+    best = {k: max(v["rules"][f"{r}@{cap}"]["psnr_3d"] for r in rules)
+            for k, v in cases.items()}
     for rule in rules:
         cells = []
         for which in ("tuning", "confirmation"):
-            vs = [v for v in cases.values() if v["set"] == which]
+            vs = [(k, v) for k, v in cases.items() if v["set"] == which]
             if not vs:
                 cells.append("-")
                 continue
-            got = [v["rules"][f"{rule}@{cap}"]["psnr_3d"] for v in vs]
-            best = [max(v["rules"][f"{r}@{cap}"]["psnr_3d"] for r in rules) for v in vs]
+            got = [v["rules"][f"{rule}@{cap}"]["psnr_3d"] for _, v in vs]
             cells.append(f"{statistics.mean(got):.2f} "
-                         f"({statistics.mean(g - b for g, b in zip(got, best)):+.2f})")
+                         f"({statistics.mean(g - best[k] for g, (k, _) in zip(got, vs)):+.2f})")
         lines.append(f"| {rule} | " + " | ".join(cells) + " |")
     return lines + [""]
 
