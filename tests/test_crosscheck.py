@@ -416,3 +416,47 @@ def test_render_run_takes_test_angles_from_the_data_set(tmp_path, rng):
     assert res["angles_from"].startswith("data set")
     np.testing.assert_allclose(load_scan(tmp_path / "check" / "scene.xml").geometry.angles,
                                default_test_angles(3)[[0, 2]])
+
+
+def test_render_run_of_a_per_view_run_uses_each_test_views_frame(tmp_path, rng):
+    """A run on a wobbling orbit: the cross-check's sensors are its data set's test views,
+    each in its own frame (rows rescaled to the training frame, pixels resized), volpath
+    agrees with the projector there, and the nominal circle's transmittance would not."""
+    import mi_grg as m
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.orbits import wobbling
+    from mi_grg.data.scene import load_scan
+    from mi_grg.data.simulate import simulate_case
+    from mi_grg.evaluation.crosscheck import view_statistics
+    from mi_grg.core.projector import project
+    g, geo, _ = tiny_case(rng)
+    scale = 0.5
+    test = np.array([0.1, 1.0, 2.0, 3.0, 4.0])
+    # two angles outside the run's: the picked test views are mid-wobble, not at its ends
+    allv = wobbling(geo.scaled(1 / scale).with_angles(np.concatenate([[-0.5], geo.angles,
+                                                                      test, [5.9]])),
+                    height=1.2, roll_deg=15.0, dsd=0.05)
+    case = simulate_case("shepp", allv.with_angles(geo.angles), test, NoiseModel(), seed=1)
+    m.save_case(case, tmp_path / "data")
+    run = tmp_path / "run"
+    run.mkdir()
+    g.save_npz(run / "gaussians.npz")
+    (run / "metrics.json").write_text(json.dumps({
+        "method": "gr", "geometry": {**allv.circular().to_scanner_dict(), "n_angles": 3,
+                                     "n_test_angles": 5, "scene_scale": scale,
+                                     "per_view": True}}))
+    with pytest.raises(ValueError, match="per-view: pass --data"):
+        render_run(run, 8, tmp_path / "nodata", views=3, det=12)
+    res = render_run(run, 256, tmp_path / "check", views=3, det=12, data=tmp_path / "data")
+    assert res["pass"], res["views"]
+    assert res["test_view_indices"] == [0, 2, 4]
+    got = load_scan(tmp_path / "check" / "scene.xml").geometry
+    # the data set's rows of test views 0, 2, 4, by hand: lengths x scale, pixel steps x 16/12
+    want = allv.view_vectors(test[[0, 2, 4]])
+    want *= scale
+    want[:, 6:] *= 16 / 12
+    np.testing.assert_allclose(got.view_vectors(), want, rtol=1e-12, atol=1e-12)
+    mc = np.asarray(mi.Bitmap(str(tmp_path / "check" / "volpath_T.exr")), np.float64)
+    circle = np.exp(-np.asarray(project(g, got.circular()), np.float64))
+    st = view_statistics(mc.reshape(circle.shape), circle, 256)
+    assert not any(v["pass"] for v in st)
