@@ -323,6 +323,56 @@ def test_half_fan_fdk_matches_rtk(shift):
     assert np.linalg.norm(ours - ref) <= 1e-4 * np.linalg.norm(ref)
 
 
+@pytest.mark.filterwarnings("ignore:builtin type:DeprecationWarning")
+@pytest.mark.parametrize("start_deg, span_deg, views", [(20.0, 240.0, 80), (300.0, 215.0, 61)])
+def test_short_scan_fdk_matches_rtk(start_deg, span_deg, views):
+    """RTK's ParkerShortScanImageFilter then its FDK, on a short scan (one that wraps
+    through 0 too)."""
+    from test_voxel_projector import (from_rtk_volume, rtk_geometry, rtk_or_skip,
+                                      to_rtk_projections, to_rtk_volume)
+    from mi_grg.core.fdk import fdk
+    from mi_grg.data.phantoms import make_phantom
+    itk, rtk = rtk_or_skip()
+    angles = np.radians(start_deg + np.linspace(0.0, span_deg, views))
+    geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(40, 48), sDetector=(3.5, 4.2),
+                   nVoxel=(32, 30, 28), sVoxel=(2.0, 1.9, 1.8), angles=angles)
+    proj = make_phantom("shepp").line_integrals(geo).astype(np.float32)
+    IF3 = itk.Image[itk.F, 3]
+    g = rtk_geometry(rtk, geo)
+    pk = rtk.ParkerShortScanImageFilter[IF3].New()
+    pk.SetInput(to_rtk_projections(itk, proj, geo))
+    pk.SetGeometry(g)
+    f = rtk.FDKConeBeamReconstructionFilter[IF3].New()
+    f.SetInput(0, to_rtk_volume(itk, np.zeros(geo.nVoxel, np.float32), geo))
+    f.SetInput(1, pk.GetOutput())
+    f.SetGeometry(g)
+    f.GetRampFilter().SetTruncationCorrection(0.0)
+    f.Update()
+    ref = from_rtk_volume(itk, f.GetOutput())
+    ours = fdk(proj, geo)
+    assert np.linalg.norm(ref) > 1.0
+    assert np.linalg.norm(ours - ref) <= 1e-4 * np.linalg.norm(ref)
+
+
+def test_short_scan_caveats(capsys):
+    """A short scan of pi plus the fan angle is FDK's; less than that, or with an offset
+    detector, is named on stderr."""
+    from mi_grg.core.fdk import fdk
+    from mi_grg.core.fdk_geometry import caveats
+    geo = Geometry(mode="cone", DSD=7.0, DSO=5.0, nDetector=(8, 12), sDetector=(3.5, 4.2),
+                   nVoxel=(8, 8, 8), sVoxel=(2.0, 1.9, 1.8),
+                   angles=np.radians(np.linspace(0.0, 215.0, 40)))
+    assert caveats(geo) == []                       # fan angle 2 atan(2.1 / 7) = 33.4 deg
+    short = geo.with_angles(np.radians(np.linspace(0.0, 200.0, 40)))
+    assert ["spans 200 degrees, less than 180 plus the fan angle (213)" in c
+            for c in caveats(short)] == [True]
+    fdk(np.zeros(short.projection_shape, np.float32), short)
+    assert "fdk: not meaningful" in capsys.readouterr().err
+    half = geo.replace(offDetector=(0.0, 1.2))
+    assert ["with an offset detector" in c for c in caveats(half)] == [True]
+    assert caveats(geo.with_angles(circular_angles(40))) == []
+
+
 def _fdk_case(geo):
     from mi_grg.data.phantoms import make_phantom
     ph = make_phantom("shepp")

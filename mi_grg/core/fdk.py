@@ -15,11 +15,12 @@ Steps (Feldkamp, Davis & Kress 1984; Kak & Slaney ch. 3; weights as in TIGRE):
    (cone only). All views are fused in one kernel (a loop over views per voxel).
 4. Scale by pi / n_views (= the angular step 2 pi / n of a full circle times the 1/2 of
    full-scan redundancy; also right for parallel beam over pi or 2 pi), so the output is
-   in the density units of the ground truth.
+   in the density units of the ground truth (a short scan: each view's own angular step,
+   ``mi_grg.core.fdk_geometry.short_scan_weights``).
 
 Assumes equally spaced angles over a full circle (cone) or a half/full circle (parallel);
-short scans would need Parker weights, which are not implemented. Offset detectors
-(half-fan) get redundancy weights, per-view scans each view's own frame in the weights and
+cone-beam short scans get Parker's weights and each view its own angular step, offset
+detectors (half-fan) redundancy weights, per-view scans each view's own frame in the weights and
 the back-projection (``mi_grg.core.fdk_geometry``); ``fdk`` says on stderr where FDK is
 only approximate (``fdk_geometry.caveats``).
 """
@@ -251,10 +252,14 @@ def _backproject_vectors_kernel(q, tables, geo: Geometry, n_views):
 
 def fdk_dr(proj, geometry: Geometry, angles=None, filter: str = "ram-lak") -> "mi.TensorXf":
     """FDK (cone) / FBP (parallel) as ``mi.TensorXf`` [x, y, z] (density, 1/length);
-    offset detectors get redundancy weights (``fdk_geometry.pad_offset_detector``)."""
+    short scans and offset detectors get redundancy weights
+    (``fdk_geometry.short_scan_weights``, ``fdk_geometry.pad_offset_detector``)."""
     a = check_angles(angles, geometry)
     p = check_projections(proj, geometry, a)
     geo = geometry if angles is None else geometry.with_angles(a)
+    w = fdk_geometry.short_scan_weights(geo)
+    if w is not None:
+        p = (p * w[:, None, :]).astype(np.float32)
     p, geo = fdk_geometry.pad_offset_detector(p, geo)
     q = filter_projections(p, geo, filter)
     return mi.TensorXf(fdk_backproject(q, geo), shape=tuple(geometry.nVoxel))

@@ -1,5 +1,6 @@
-"""What FDK needs of a scan beyond a centred circle: offset-detector (half-fan) redundancy
-weights, each view's own source-detector frame, and where FDK is not meaningful.
+"""What FDK needs of a scan beyond a centred circle: offset-detector (half-fan) and
+short-scan redundancy weights, each view's own source-detector frame, and where FDK is not
+meaningful.
 
 Offset detector (Wang 2002, in the form of RTK's DisplacedDetectorImageFilter): with
 ``l`` the column's detector coordinate (offsets included) and ``theta`` the half-width of
@@ -9,6 +10,18 @@ on the short side, 2 beyond ``theta`` on the long side and
 full circle add up to 2 (FDK's full-scan factor 1/2 stays). The short side is then
 zero-padded by one detector width so that the ramp-filtered values there are
 back-projected too. A shift below a tenth of the width is not weighted (as RTK).
+
+Short scan (Parker 1982, in the form of RTK's ParkerShortScanImageFilter): cone-beam views
+over less than a full circle, the largest gap between neighbouring views being a gap (see
+``GAP_STEPS``, ``GAP_DEG``). With ``beta`` the view's angle from the first view after that
+gap, ``2 delta`` the arc beyond pi up to the last view, and ``alpha = atan(-l / DSO)`` the
+column's fan angle (``l`` its coordinate scaled to the axis, offsets included), the weight
+rises as ``2 sin^2(pi beta / (4 (delta - alpha)))`` up to ``beta = 2 (delta - alpha)``,
+is 2 up to ``pi - 2 alpha`` and falls as ``2 sin^2(pi (pi + 2 delta - beta) / (4 (delta +
+alpha)))`` to ``pi + 2 delta``, so that the two rays of a line add up to 2 again. Each view
+then counts with its own angular step (half the arc to its two neighbours, as RTK's
+angular gaps) instead of the full circle's 2 pi / n. Parker's weights need ``delta`` of at
+least half the fan angle (pi plus the fan angle of data); ``caveats`` says when it is less.
 
 Per-view frames (RTK's FDK for its 3-D circular geometry does the same): each view's
 source-to-detector distance ``DSD_i`` (to the detector plane, along its normal), its
@@ -22,7 +35,8 @@ import numpy as np
 
 from mi_grg.core.geometry import Geometry
 
-__all__ = ["offset_weights", "pad_offset_detector", "view_fdk_frames", "caveats"]
+__all__ = ["offset_weights", "pad_offset_detector", "short_scan", "short_scan_weights",
+           "view_fdk_frames", "caveats"]
 
 # RTK's rule: shifts below this fraction of the width need no redundancy weights
 MIN_SHIFT = 0.1
@@ -56,6 +70,64 @@ def offset_weights(geo: Geometry):
     ramp = (np.arctan(l / sdd) / np.arctan(theta / sdd)) if sdd else l / theta
     w = 1.0 + np.sin(0.5 * np.pi * np.clip(ramp, -1.0, 1.0))
     return w if sup + inf > 0 else 2.0 - w
+
+
+def _gaps(angles):
+    """(angles mod 2 pi sorted, the order, each sorted angle's gap to the next, wrapping)."""
+    a = np.mod(np.asarray(angles, np.float64), 2 * np.pi)
+    order = np.argsort(a, kind="stable")
+    s = a[order]
+    return s, order, np.diff(np.concatenate([s, s[:1] + 2 * np.pi]))
+
+
+def short_scan(geo: Geometry):
+    """``(first, delta)`` of a cone-beam short scan: the angle (mod 2 pi) of the first view
+    after the largest gap and half the arc beyond pi that the views span; None for a full
+    circle (no gap counts: ``GAP_STEPS``, ``GAP_DEG``) or a parallel-beam scan."""
+    if geo.mode != "cone" or geo.n_views < 2:
+        return None
+    s, _, gaps = _gaps(geo.angles)
+    k = int(np.argmax(gaps))
+    if gaps[k] <= max(GAP_STEPS * 2 * np.pi / s.size, np.radians(GAP_DEG)):
+        return None
+    first = s[(k + 1) % s.size]
+    span = 2 * np.pi - gaps[k]                 # from the first view to the last
+    return float(first), float(0.5 * (span - np.pi))
+
+
+def _half_fan_angle(geo: Geometry) -> float:
+    """The larger of the fan angles to the detector's two side edges (radians): Parker's
+    weights need delta beyond it."""
+    inf, sup = _corners(geo)
+    du = geo.dDetector[1]
+    return float(np.arctan(max(abs(inf - 0.5 * du), abs(sup + 0.5 * du)) / geo.DSD))
+
+
+def short_scan_weights(geo: Geometry):
+    """Parker's weights times each view's angular step over the full circle's, float64
+    [view, nu] (module docstring), or None for a full circle. The angles, distances and
+    detector offset are the nominal circle's (a per-view scan's small deviations aside)."""
+    scan = short_scan(geo)
+    if scan is None:
+        return None
+    first, delta = scan
+    nu = geo.nDetector[1]
+    l = ((np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]) \
+        * geo.DSO / geo.DSD
+    alpha = np.arctan(-l / geo.DSO)[None, :]
+    beta = np.mod(np.asarray(geo.angles, np.float64) - first, 2 * np.pi)[:, None]
+    tiny = 1e-12                                # delta -/+ alpha <= 0: no data to weight
+    rise = 2 * np.sin(np.pi * beta / (4 * np.maximum(delta - alpha, tiny))) ** 2
+    fall = 2 * np.sin(np.pi * (np.pi + 2 * delta - beta)
+                      / (4 * np.maximum(delta + alpha, tiny))) ** 2
+    w = np.where(beta <= 2 * delta - 2 * alpha, rise,
+                 np.where(beta <= np.pi - 2 * alpha, 2.0,
+                          np.where(beta <= np.pi + 2 * delta, fall, 0.0)))
+    # each view's angular step: half the arc to its two neighbours (the circle's 2 pi / n)
+    s, order, gaps = _gaps(geo.angles)
+    step = np.empty(s.size)
+    step[order] = 0.5 * (gaps + np.roll(gaps, 1))
+    return w * (step * s.size / (2 * np.pi))[:, None]
 
 
 def pad_offset_detector(proj: np.ndarray, geo: Geometry):
@@ -116,13 +188,20 @@ def caveats(geo: Geometry) -> list:
     if inf > 0 or sup < 0:
         out.append("the detector does not cover the principal ray (offset beyond half its "
                    "width)")
-    a = np.sort(np.mod(geo.angles, 2 * np.pi))
-    gaps = np.diff(np.concatenate([a, a[:1] + 2 * np.pi])) if a.size > 1 else np.array([2 * np.pi])
+    a, _, gaps = _gaps(geo.angles)
     step = 2 * np.pi / max(a.size, 1)
-    need_full = geo.mode == "cone" or offset_weights(geo) is not None
-    if need_full and a.size > 1 and gaps.max() > max(GAP_STEPS * step, np.radians(GAP_DEG)):
-        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees (FDK here "
-                   "needs a full circle; no short-scan weights)")
+    offset = offset_weights(geo) is not None
+    short = short_scan(geo)
+    if short is not None and offset:
+        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees with an "
+                   "offset detector (no weights here for a short half-fan scan)")
+    elif short is not None and short[1] < _half_fan_angle(geo):
+        out.append(f"the short scan spans {180 + 2 * np.degrees(short[1]):.0f} degrees, less "
+                   f"than 180 plus the fan angle ({180 + 2 * np.degrees(_half_fan_angle(geo)):.0f})")
+    elif (short is None and offset and a.size > 1
+          and gaps.max() > max(GAP_STEPS * step, np.radians(GAP_DEG))):
+        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees (a "
+                   "half-fan scan needs a full circle)")
     if geo.per_view and geo.mode == "cone":
         f = view_fdk_frames(geo)
         vec = f["vectors"]
