@@ -12,12 +12,14 @@ the Shepp-Logan phantom, scanned four ways:
   circle (its vectors dropped), what a reader that ignores them does.
 
 Methods fdk, pdhg and gr (gr with ``--gr-iterations``, small so that it runs on a loaded
-CPU); FDK's half-fan loss by view count, with and without noise. Speed: the Joseph
+CPU); FDK's half-fan loss by view count, with and without noise; FDK on a short scan (180
+degrees plus the fan angle) with and without Parker's weights. Speed: the Joseph
 projector (A and A^T) and the Gaussian projector (25 views) on the circular scan, the same
 scan given as vectors, and the wobbling scan (medians of repeats).
 
     python bench/per_view_geometry.py                     # 32^3, gr 500 iterations
     python bench/per_view_geometry.py --n 64 --gr-iterations 1500
+    python bench/per_view_geometry.py --parts short_scan   # only that table, merged
 
 Writes docs/bench/per_view_geometry.json and .md.
 """
@@ -33,6 +35,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANS = ("circular", "half_fan", "wobbling", "wobbling_ignored")
+PARTS = ("speed", "quality", "fdk_gap", "short_scan")
 
 
 def cases(n: int) -> dict:
@@ -93,6 +96,40 @@ def fdk_gap(n: int, views=(25, 50, 100, 360)) -> list:
             rows.append({"views": nv, "noise": noise, **p})
             print(f"fdk {nv} views {noise}: half-fan {p['half_fan'] - p['circular']:+.2f} dB",
                   flush=True)
+    return rows
+
+
+def short_scan(n: int, views=(25, 100)) -> list:
+    """FDK on the centred circle and on a short scan of 180 degrees plus the fan angle (the
+    same number of views), the short scan with Parker's weights and without them (what FDK
+    did before it had them), noisy and clean."""
+    import numpy as np
+    import mi_grg
+    from mi_grg.core import fdk_geometry
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    rows = []
+    for nv in views:
+        geo = default_geometry(n=n, det=int(1.5 * n), views=nv)
+        fan = 2 * np.arctan(0.5 * geo.sDetector[1] / geo.DSD)
+        short = geo.with_angles(np.linspace(0.0, np.pi + fan, nv))
+        for noise, model in (("noisy", NoiseModel()),
+                             ("clean", NoiseModel(I0=1e12, electronic_std=0.0))):
+            def score(g):
+                case = simulate_case("shepp", g, default_test_angles(5), model, seed=0)
+                return mi_grg.reconstruct(case, "fdk")[1]["psnr_3d"]
+            row = {"views": nv, "noise": noise, "span_deg": float(np.degrees(np.pi + fan)),
+                   "circular": score(geo), "short_parker": score(short)}
+            weights = fdk_geometry.short_scan_weights
+            fdk_geometry.short_scan_weights = lambda g: None
+            try:
+                row["short_unweighted"] = score(short)
+            finally:
+                fdk_geometry.short_scan_weights = weights
+            rows.append(row)
+            print(f"fdk short scan {nv} views {noise}: Parker "
+                  f"{row['short_parker'] - row['circular']:+.2f} dB, unweighted "
+                  f"{row['short_unweighted'] - row['circular']:+.2f} dB", flush=True)
     return rows
 
 
@@ -161,6 +198,16 @@ def markdown(res: dict) -> str:
                for r in res["fdk_gap"]}
         for nv in sorted({r["views"] for r in res["fdk_gap"]}):
             out.append(f"| {nv} | {gap[(nv, 'noisy')]:+.2f} | {gap[(nv, 'clean')]:+.2f} |")
+    if res.get("short_scan"):
+        r0 = res["short_scan"][0]
+        out += ["", f"## FDK on a short scan ({res['n']}^3, Shepp-Logan, {r0['span_deg']:.0f} "
+                "degrees, the same number of views as the circle; 3-D PSNR dB)", "",
+                "| views | noise | circle | short scan, Parker's weights | short scan, unweighted |",
+                "|---|---|---|---|---|"]
+        for r in res["short_scan"]:
+            out.append(f"| {r['views']} | {r['noise']} | {r['circular']:.2f} | "
+                       f"{r['short_parker']:.2f} ({r['short_parker'] - r['circular']:+.2f}) | "
+                       f"{r['short_unweighted']:.2f} ({r['short_unweighted'] - r['circular']:+.2f}) |")
     out += ["", "## Speed (median seconds)", "", "| scan | Joseph A | Joseph A^T | "
             "Gaussians, 25 views | Gaussians, 1 view |", "|---|---|---|---|---|"]
     base = res["speed"][0]
@@ -179,16 +226,28 @@ def main(argv=None) -> int:
     ap.add_argument("--gr-iterations", type=int, default=500)
     ap.add_argument("--methods", nargs="+", default=["fdk", "pdhg", "gr"])
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS),
+                    help="what to measure; the others are kept from an existing JSON")
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench" / "per_view_geometry"))
     args = ap.parse_args(argv)
     import mi_grg  # noqa: F401  (first: Dr.Jit's LLVM library)
-    res = {"n": args.n, "gr_iterations": args.gr_iterations,
-           "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}, "
-                      f"{__import__('os').cpu_count()} cores (shared)",
-           "speed_n": args.speed_n, "speed": speed(args.speed_n, args.reps),
-           "quality": quality(args.n, args.gr_iterations, args.methods),
-           "fdk_gap": fdk_gap(args.n)}
     out = Path(args.out)
+    res = {}
+    if set(args.parts) != set(PARTS) and out.with_suffix(".json").is_file():
+        res = json.loads(out.with_suffix(".json").read_text())
+        if res.get("n") != args.n:
+            ap.error(f"--n {args.n} differs from the existing {out}.json's n = {res.get('n')}")
+    res.update({"n": args.n, "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}, "
+                f"{__import__('os').cpu_count()} cores (shared)"})
+    if "speed" in args.parts:
+        res.update(speed_n=args.speed_n, speed=speed(args.speed_n, args.reps))
+    if "quality" in args.parts:
+        res.update(gr_iterations=args.gr_iterations,
+                   quality=quality(args.n, args.gr_iterations, args.methods))
+    if "fdk_gap" in args.parts:
+        res["fdk_gap"] = fdk_gap(args.n)
+    if "short_scan" in args.parts:
+        res["short_scan"] = short_scan(args.n)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(res, indent=2))
     out.with_suffix(".md").write_text(markdown(res))
