@@ -103,6 +103,8 @@ def test_contract_and_bad_options(rng):
     assert info["held_out_views"] == [2, 6] and info["final_views"] == list(range(9))
     assert {c["setting"]["lam"] for c in info["candidates"]} == {0.0, 0.01}
     assert info["chosen"]["sweeps"] % 2 == 0 and "oracle" not in info
+    assert info["cap"]["iterations"] == 20 and info["cap"]["from"] == "n_iter"
+    assert info["cap"]["binds"] == (info["chosen"]["sweeps"] == 20)
     with pytest.raises(ValueError, match="lam"):
         reconstruct_pdhg(case, stop="none", lam=[0.0, 0.1])
     with pytest.raises(ValueError, match="gamma"):
@@ -116,3 +118,13 @@ def test_contract_and_bad_options(rng):
                                  progress=False)
     assert info["cap"]["base"] == 4 and max(
         c["sweeps_run"] for c in info["candidates"]) >= 4
+
+
+def test_heldout_cap_grows_with_the_grid():
+    from mi_grg.classical.pdhg import HELDOUT_ITERATION_CAP as c60, heldout_cap
+    assert c60 == 60
+    caps = {n: heldout_cap(tiny_geometry(n=8).replace(nVoxel=n)) for n in
+            [(8, 8, 8), (64, 64, 64), (128, 128, 128), (128, 128, 64), (96, 80, 90),
+             (256, 256, 256)]}
+    assert caps == {(8, 8, 8): 60, (64, 64, 64): 60, (128, 128, 128): 240,
+                    (128, 128, 64): 240, (96, 80, 90): 135, (256, 256, 256): 960}

@@ -53,8 +53,11 @@ DEFAULT_GAMMA = 0.3
 WARM_DUAL_ITERATIONS = 200
 #: Iterations of ``stop="none"`` when n_iter is not given.
 FIXED_ITERATIONS = 100
-#: Cap on iterations per candidate under ``stop="heldout"``.
+#: Cap on iterations per candidate under ``stop="heldout"`` on a 64^3 grid
+#: (``heldout_cap`` scales it with the grid; docs/bench/pdhg_cap_n.md).
 HELDOUT_ITERATION_CAP = 60
+#: The grid size (longest axis, voxels) that HELDOUT_ITERATION_CAP was chosen at.
+HELDOUT_CAP_SIZE = 64
 #: Whether the held-out cap widens by default (``widen``; docs/bench/pdhg_rules.md).
 WIDEN_CAP = False
 #: Held-out evaluations every this many iterations: an iteration moves far less than a
@@ -279,6 +282,16 @@ def pdhg(proj, geometry: Geometry, angles=None, *, n_iter: int = FIXED_ITERATION
 
 
 # ---------------------------------------------------------------- reconstruction contract
+def heldout_cap(geometry: Geometry) -> int:
+    """The default cap under ``stop="heldout"``: HELDOUT_ITERATION_CAP x (n / 64)^2 for a
+    grid whose longest axis has n > 64 voxels, HELDOUT_ITERATION_CAP below. A finer grid
+    carries finer detail, which PDHG's fixed-size steps reach in more iterations: at 128^3
+    the 64^3 cap stops every candidate while its held-out views still improve."""
+    n = max(int(x) for x in geometry.nVoxel)
+    return max(HELDOUT_ITERATION_CAP,
+               int(round(HELDOUT_ITERATION_CAP * (n / HELDOUT_CAP_SIZE) ** 2)))
+
+
 def _flag(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise ValueError(f"pdhg: {name} must be true or false, got {value!r}")
@@ -294,7 +307,7 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     Options: stop ("heldout": the iteration count and lam are chosen on held-out views by
     gr's rule, evaluated every ``eval_every`` iterations, then run on all views,
     mi_grg.protocol.heldout; "none": n_iter iterations at one lam), n_iter (cap under
-    "heldout", HELDOUT_ITERATION_CAP; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
+    "heldout", ``heldout_cap``; FIXED_ITERATIONS under "none"), lam (None = LAM_GRID
     under "heldout", FIXED_LAM under "none"; a number, or under "heldout" a list), lam_rule
     (how "heldout" chooses lam from a grid: "one_se", the one-standard-error rule, "best",
     the best held-out PSNR, or "morozov", Morozov's discrepancy principle:
@@ -333,12 +346,17 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     if lam_rule is not None and not isinstance(grid, LogGrid):
         raise ValueError(f"pdhg: lam_rule={lam_rule!r} chooses among a grid of lam; lam="
                          f"{lam!r} leaves nothing to choose")
+    cap = heldout_cap(case.geometry) if n_iter is None else n_iter
     vol, info = run_heldout(case, run, grid, project=forward_project, name="pdhg",
-                            eval_every=eval_every,
-                            max_sweeps=HELDOUT_ITERATION_CAP if n_iter is None else n_iter,
+                            eval_every=eval_every, max_sweeps=cap,
                             holdout_every=holdout_every, oracle=oracle, start=start,
                             widen=WIDEN_CAP if widen is None else _flag(widen, "widen"),
                             progress=progress)
+    if "cap" not in info:          # a widening cap records itself
+        info["cap"] = {"iterations": int(cap), "binds": info["chosen"]["sweeps"] >= int(cap),
+                       "from": "n_iter" if n_iter is not None else
+                       f"heldout_cap: {HELDOUT_ITERATION_CAP} x (n / {HELDOUT_CAP_SIZE})^2, n = "
+                       f"{max(case.geometry.nVoxel)} (at least {HELDOUT_ITERATION_CAP})"}
     info["norm_A"] = {"fitted_views": norms.get(np.asarray(
         case.geometry.angles, np.float64)[info["decision_views"]].tobytes()),
         "all_views": norms.get(np.asarray(case.geometry.angles, np.float64).tobytes()),
