@@ -159,7 +159,8 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
             "curve": length["curve"], "decision_seconds": length["seconds"]}
     if length["at_cap"]:
         print(f"refine=tv: the held-out residual still fell at refine_max_iterations="
-              f"{cfg.refine_max_iterations}; a higher cap may pay", file=sys.stderr)
+              f"{cfg.refine_max_iterations} (metrics.json: at_cap); a higher cap is an option "
+              "(docs/benchmarks.md, \"The refinement's cap\")", file=sys.stderr)
     if length["iterations"] == 0:
         return vol, field, {**info, "grid": vol}
     t0 = time.perf_counter()
