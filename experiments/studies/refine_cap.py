@@ -64,9 +64,11 @@ def markdown(records: dict) -> str:
                             f"{c['iterations']} | {'yes' if c['at_cap'] else 'no'} | "
                             f"{r['train_seconds']:.0f} | {c['seconds']:.0f} ({parts}) |")
     for which in ("tuning", "confirmation"):
-        rs = [r for r in records.values() if r["set"] == which]
+        # the cases of this set measured with every cap of the widest comparison
+        rs = [r for r in records.values() if r["set"] == which and len(r["caps"]) > 1]
         caps = sorted({int(k) for r in rs for k in r["caps"]})
-        if rs and len(caps) > 1 and all(str(k) in r["caps"] for r in rs for k in caps):
+        rs = [r for r in rs if all(str(k) in r["caps"] for k in caps)]
+        if rs and len(caps) > 1:
             d = caps[0]
             gains = ", ".join(
                 f"cap {k}: {sum(r['caps'][str(k)]['psnr'] - r['caps'][str(d)]['psnr'] for r in rs) / len(rs):+.2f} dB"
