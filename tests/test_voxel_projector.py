@@ -123,6 +123,27 @@ def rtk_forward(itk, rtk, vol, geo):
     return np.array(itk.array_from_image(f.GetOutput()), copy=True)
 
 
+def rtk_fdk(itk, rtk, proj, geo, weighting=None):
+    """RTK's FDK of projections [view, v, u] (truncation correction off) -> [x, y, z];
+    ``weighting``: the name of an RTK redundancy filter applied first
+    ("DisplacedDetectorImageFilter", "ParkerShortScanImageFilter") or None."""
+    IF3 = itk.Image[itk.F, 3]
+    g = rtk_geometry(rtk, geo)
+    p = to_rtk_projections(itk, proj, geo)
+    if weighting is not None:
+        w = getattr(rtk, weighting)[IF3].New()
+        w.SetInput(p)
+        w.SetGeometry(g)
+        p = w.GetOutput()
+    f = rtk.FDKConeBeamReconstructionFilter[IF3].New()
+    f.SetInput(0, to_rtk_volume(itk, np.zeros(geo.nVoxel, np.float32), geo))
+    f.SetInput(1, p)
+    f.SetGeometry(g)
+    f.GetRampFilter().SetTruncationCorrection(0.0)
+    f.Update()
+    return from_rtk_volume(itk, f.GetOutput())
+
+
 # ---------------------------------------------------------------- tests
 @pytest.mark.parametrize("mode", ["cone", "parallel"])
 def test_adjoint_dot_product(variant, mode, rng):

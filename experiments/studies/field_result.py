@@ -60,6 +60,16 @@ def pdhg_rules(case) -> dict:
     return {rule: pdhg_run(case, lam_rule=rule) for rule in PDHG_RULES}
 
 
+def save_record(out: Path, key: str, rec: dict, markdown) -> None:
+    """Merge ``rec`` under ``key`` into ``out``.json (re-read first: two processes may
+    write cases of their own) and rewrite ``out``.md as ``markdown(records)``."""
+    path = out.with_suffix(".json")
+    records = json.loads(path.read_text()) if path.exists() else {}
+    records[key] = rec
+    path.write_text(json.dumps(records, indent=1))
+    out.with_suffix(".md").write_text(markdown(records))
+
+
 def make_case(name: str, n: int, data_root: Path, cases=None) -> tuple:
     """(the case ``name`` of ``cases`` (None: ``CASES``) at n^3, detector 1.5 n, 25 noisy
     views; its set)."""

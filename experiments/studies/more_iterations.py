@@ -16,7 +16,7 @@ import json
 import time
 from pathlib import Path
 
-from field_result import CASES, ROOT, make_case
+from field_result import CASES, ROOT, make_case, save_record
 
 
 def run_case(name: str, factors, data_root: Path, n: int) -> dict:
@@ -67,14 +67,10 @@ def main():
     ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "more_iterations")
     a = ap.parse_args()
-    path = a.out.with_suffix(".json")
     factors = [int(f) if float(f).is_integer() else f for f in a.factors]
     for name in a.cases:
         rec = run_case(name, factors, a.data, a.n)
-        records = json.loads(path.read_text()) if path.exists() else {}
-        records[f"{name}_{a.n}"] = rec
-        path.write_text(json.dumps(records, indent=1))
-        a.out.with_suffix(".md").write_text(markdown(records))
+        save_record(a.out, f"{name}_{a.n}", rec, markdown)
         print(json.dumps(rec), flush=True)
 
 

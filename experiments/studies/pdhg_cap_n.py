@@ -16,7 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-from field_result import CASES, ROOT, make_case, pdhg_run
+from field_result import CASES, ROOT, make_case, pdhg_run, save_record
 
 
 def run(name: str, n: int, cap: int, data_root: Path) -> dict:
@@ -41,17 +41,11 @@ def main():
     ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "pdhg_cap_n")
     a = ap.parse_args()
-    path = a.out.with_suffix(".json")
     for name in a.cases:
         for cap in a.caps:
             rec = run(name, a.n, cap, a.data)
-            # re-read: two processes may write cases of their own
-            records = json.loads(path.read_text()) if path.exists() else {}
-            records[f"{name}_{a.n}_{cap}"] = rec
-            path.write_text(json.dumps(records, indent=1))
-            a.out.with_suffix(".md").write_text(markdown(records))
+            save_record(a.out, f"{name}_{a.n}_{cap}", rec, markdown)
             print(json.dumps(rec), flush=True)
-
 
 if __name__ == "__main__":
     main()

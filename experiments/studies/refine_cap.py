@@ -19,7 +19,7 @@ import json
 import time
 from pathlib import Path
 
-from field_result import CASES, ROOT, make_case
+from field_result import CASES, ROOT, make_case, save_record
 
 
 def run_case(name: str, caps, data_root: Path, n: int) -> dict:
@@ -86,16 +86,11 @@ def main():
     ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "refine_cap")
     a = ap.parse_args()
-    path = a.out.with_suffix(".json")
     for name in a.cases:
         rec = run_case(name, a.caps, a.data, a.n)
-        records = json.loads(path.read_text()) if path.exists() else {}
-        records[f"{name}_{a.n}"] = rec
-        path.write_text(json.dumps(records, indent=1))
-        a.out.with_suffix(".md").write_text(markdown(records))
+        save_record(a.out, f"{name}_{a.n}", rec, markdown)
         print(json.dumps({k: v for k, v in rec.items() if k != "caps"}),
               {k: (v["psnr"], v["iterations"]) for k, v in rec["caps"].items()}, flush=True)
-
 
 if __name__ == "__main__":
     main()
