@@ -63,13 +63,18 @@ def offset_weights(geo: Geometry):
         return None
     if inf > 0 or sup < 0:
         return None      # the principal ray misses the detector: ``caveats`` says so
-    nu = geo.nDetector[1]
-    l = (np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]
+    l = _columns(geo)
     theta = min(-inf, sup)
     sdd = geo.DSD if geo.mode == "cone" else None
     ramp = (np.arctan(l / sdd) / np.arctan(theta / sdd)) if sdd else l / theta
     w = 1.0 + np.sin(0.5 * np.pi * np.clip(ramp, -1.0, 1.0))
     return w if sup + inf > 0 else 2.0 - w
+
+
+def _columns(geo: Geometry) -> np.ndarray:
+    """Each column's centre on the detector along u, offsets included [nu] (float64)."""
+    nu = geo.nDetector[1]
+    return (np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]
 
 
 def _gaps(angles):
@@ -80,6 +85,12 @@ def _gaps(angles):
     return s, order, np.diff(np.concatenate([s, s[:1] + 2 * np.pi]))
 
 
+def _is_gap(gap: float, n_views: int) -> bool:
+    """Whether a gap between neighbouring views breaks the circle (``GAP_STEPS``,
+    ``GAP_DEG``): a full circle may lack a few held-out views."""
+    return n_views > 1 and gap > max(GAP_STEPS * 2 * np.pi / n_views, np.radians(GAP_DEG))
+
+
 def short_scan(geo: Geometry):
     """``(first, delta)`` of a cone-beam short scan: the angle (mod 2 pi) of the first view
     after the largest gap and half the arc beyond pi that the views span; None for a full
@@ -88,7 +99,7 @@ def short_scan(geo: Geometry):
         return None
     s, _, gaps = _gaps(geo.angles)
     k = int(np.argmax(gaps))
-    if gaps[k] <= max(GAP_STEPS * 2 * np.pi / s.size, np.radians(GAP_DEG)):
+    if not _is_gap(gaps[k], s.size):
         return None
     first = s[(k + 1) % s.size]
     span = 2 * np.pi - gaps[k]                 # from the first view to the last
@@ -111,10 +122,7 @@ def short_scan_weights(geo: Geometry):
     if scan is None:
         return None
     first, delta = scan
-    nu = geo.nDetector[1]
-    l = ((np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]) \
-        * geo.DSO / geo.DSD
-    alpha = np.arctan(-l / geo.DSO)[None, :]
+    alpha = np.arctan(-_columns(geo) / geo.DSD)[None, :]     # atan(-l / DSO), l at the axis
     beta = np.mod(np.asarray(geo.angles, np.float64) - first, 2 * np.pi)[:, None]
     tiny = 1e-12                                # delta -/+ alpha <= 0: no data to weight
     rise = 2 * np.sin(np.pi * beta / (4 * np.maximum(delta - alpha, tiny))) ** 2
@@ -188,19 +196,17 @@ def caveats(geo: Geometry) -> list:
     if inf > 0 or sup < 0:
         out.append("the detector does not cover the principal ray (offset beyond half its "
                    "width)")
-    a, _, gaps = _gaps(geo.angles)
-    step = 2 * np.pi / max(a.size, 1)
+    gap = float(_gaps(geo.angles)[2].max())
     offset = offset_weights(geo) is not None
     short = short_scan(geo)
     if short is not None and offset:
-        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees with an "
+        out.append(f"the views leave a gap of {np.degrees(gap):.0f} degrees with an "
                    "offset detector (no weights here for a short half-fan scan)")
     elif short is not None and short[1] < _half_fan_angle(geo):
         out.append(f"the short scan spans {180 + 2 * np.degrees(short[1]):.0f} degrees, less "
                    f"than 180 plus the fan angle ({180 + 2 * np.degrees(_half_fan_angle(geo)):.0f})")
-    elif (short is None and offset and a.size > 1
-          and gaps.max() > max(GAP_STEPS * step, np.radians(GAP_DEG))):
-        out.append(f"the views leave a gap of {np.degrees(gaps.max()):.0f} degrees (a "
+    elif short is None and offset and _is_gap(gap, geo.n_views):
+        out.append(f"the views leave a gap of {np.degrees(gap):.0f} degrees (a "
                    "half-fan scan needs a full circle)")
     if geo.per_view and geo.mode == "cone":
         f = view_fdk_frames(geo)
