@@ -111,7 +111,7 @@ def test_rtk_geometry_import(tmp_path):
     np.testing.assert_allclose(case.train, p, atol=1e-4)
 
 
-def test_nikon_xtekct(tmp_path):
+def test_nikon_xtekct(tmp_path, capsys):
     geo = _circle(20).replace(offDetector=(0.2, -0.6), angles=np.radians(
         10.0 + np.arange(20) * 18.0))
     p = _write_frames(tmp_path / "scan", geo, name="part")
@@ -119,9 +119,15 @@ def test_nikon_xtekct(tmp_path):
         "[XTekCT]\nName=part\nSrcToObject=300\nSrcToDetector=500\n"
         f"DetectorPixelsX={NU}\nDetectorPixelsY={NV}\nDetectorPixelSizeX={PX}\n"
         f"DetectorPixelSizeY={PX}\nDetectorOffsetX=-0.6\nDetectorOffsetY=0.2\n"
-        "Projections=20\nInitialAngle=10\nAngularStep=18\nVoxelsX=20\n")
-    import_scan(tmp_path / "scan" / "part.xtekct", tmp_path / "case",
-                flats=str(tmp_path / "flats" / "flat.tif"), free_ray="none", nVoxel=20)
+        "Projections=20\nInitialAngle=10\nAngularStep=18\nVoxelsX=20\n"
+        "CentreOfRotationTop=0.25\nObjectTilt=0\nObjectRoll=0.0\n")
+    rec = import_scan(tmp_path / "scan" / "part.xtekct", tmp_path / "case",
+                      flats=str(tmp_path / "flats" / "flat.tif"), free_ray="none", nVoxel=20)
+    # an alignment key the reader does not apply is said, not dropped; zeros are not
+    assert rec["source"]["not_used"] == {"CentreOfRotationTop": "0.25"}
+    err = capsys.readouterr().err
+    assert "CentreOfRotationTop = 0.25: not applied" in err and "--cor auto" in err
+    assert "ObjectTilt" not in err
     case = mi_grg.load_case(tmp_path / "case", rescale=False)
     g = case.geometry
     assert (g.DSD, g.DSO, g.nDetector, g.offDetector) == (500.0, 300.0, (NV, NU), (0.2, -0.6))

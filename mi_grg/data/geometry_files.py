@@ -40,6 +40,12 @@ RTK_DEFAULTS = {"OutOfPlaneAngle": 0.0, "InPlaneAngle": 0.0, "SourceOffsetX": 0.
                 "SourceOffsetY": 0.0, "ProjectionOffsetX": 0.0, "ProjectionOffsetY": 0.0}
 XTEK_REQUIRED = ("SrcToObject", "SrcToDetector", "DetectorPixelsX", "DetectorPixelsY",
                  "DetectorPixelSizeX", "DetectorPixelSizeY", "Projections")
+#: Keys of a real scan's alignment that the reader does not apply: the public readers do
+#: not agree on their signs and scales (TIGRE's says it does not know the centre of
+#: rotation's sign; CIL scales CentreOfRotation* by the magnification, TIGRE does not), and
+#: a wrong sign doubles the misalignment. A value other than 0 is reported (``not_used``).
+XTEK_NOT_USED = ("ObjectOffsetX", "CentreOfRotationTop", "CentreOfRotationBottom",
+                 "ObjectTilt", "ObjectRoll")
 
 
 def read_astra_vectors(path) -> np.ndarray:
@@ -188,10 +194,20 @@ def _xtek_angles(path: Path, name: str, n: int):
     return None, None
 
 
+def _nonzero(text: str) -> bool:
+    """Whether an alignment value the reader does not apply could matter: anything but a
+    number equal to 0 (an unparsable value is reported, not refused)."""
+    try:
+        return float(text) != 0.0
+    except ValueError:
+        return bool(text.strip())
+
+
 def read_xtekct(path) -> dict:
     """The fields of a Nikon ``.xtekct`` file: ``geometry`` kwargs of a circular cone-beam
     ``Geometry`` (lengths in mm; nVoxel/sVoxel left to the import), ``angles`` (radians),
-    ``name`` (the projections' file prefix) and ``angles_from``."""
+    ``name`` (the projections' file prefix), ``angles_from`` and ``not_used`` (the
+    alignment keys of XTEK_NOT_USED that are not 0, {key: text})."""
     path = Path(path)
     cfg = configparser.ConfigParser(interpolation=None, strict=False)
     cfg.optionxform = str
@@ -227,8 +243,10 @@ def read_xtekct(path) -> dict:
     geometry = {"mode": "cone", "DSD": num("SrcToDetector"), "DSO": num("SrcToObject"),
                 "nDetector": (nv, nu), "sDetector": (nv * pv, nu * pu),
                 "offDetector": (num("DetectorOffsetY", 0.0), num("DetectorOffsetX", 0.0))}
+    not_used = {k: sec[k].strip() for k in XTEK_NOT_USED if k in sec and _nonzero(sec[k])}
     return {"geometry": geometry, "angles": np.radians(deg), "name": name,
-            "angles_from": str(src) if src else "InitialAngle + k AngularStep"}
+            "angles_from": str(src) if src else "InitialAngle + k AngularStep",
+            "not_used": not_used}
 
 
 def check_rows(rows, mode, nDetector, bbox, path) -> np.ndarray:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import glob as _glob
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -186,7 +187,15 @@ def _xtek_source(source: Path, opts: dict, record: dict) -> tuple:
                         **x["geometry"])
     except GeometryError as e:
         raise DatasetError(f"{source}: {e}") from None
-    record["source"] = {"kind": "xtekct", "file": str(source), "angles": x["angles_from"]}
+    record["source"] = {"kind": "xtekct", "file": str(source), "angles": x["angles_from"],
+                        "not_used": x["not_used"]}
+    if x["not_used"]:
+        print(f"mi-grg import: {source.name} states "
+              + ", ".join(f"{k} = {v}" for k, v in x["not_used"].items())
+              + ": not applied (their signs differ between readers). The centre of rotation "
+              + ("comes from --cor" if opts.get("cor") is not None else
+                 "is DetectorOffsetX alone: give --cor auto to estimate it")
+              + "; a tilted or rolled axis is not modelled.", file=sys.stderr)
     return paths, base.angles, base, None, opts.get("unit") or "mm"
 
 
