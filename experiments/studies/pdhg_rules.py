@@ -114,13 +114,19 @@ def curves(name: str, n: int, lams, max_iter: int, data_root: Path, on_lam=None,
 
 
 # ---------------------------------------------------------------- replaying the rules
-def _candidate(c: dict, lam: float, cap, ee: int, rule: str) -> dict:
+def default_cap(n: int) -> int:
+    """PDHG's default held-out cap on an n^3 grid (``mi_grg.classical.pdhg.heldout_cap``)."""
+    from types import SimpleNamespace
+    from mi_grg.classical.pdhg import heldout_cap
+    return heldout_cap(SimpleNamespace(nVoxel=(n, n, n)))
+
+
+def _candidate(c: dict, lam: float, cap, ee: int, rule: str, base: int) -> dict:
     """What ``heldout._decision_run`` returns for one lam, from its curves, with ``cap``
-    a number of sweeps or "widen:<gain dB>" (``mi_grg.protocol.widening``)."""
-    from mi_grg.classical.pdhg import HELDOUT_ITERATION_CAP
+    a number of sweeps or "widen:<gain dB>" (``mi_grg.protocol.widening``, from ``base``)."""
     from mi_grg.protocol.early_stop import STOP_RULE
     from mi_grg.protocol.widening import Widening
-    widening = (Widening(HELDOUT_ITERATION_CAP, gain_db=float(cap.split(":")[1]))
+    widening = (Widening(base, gain_db=float(cap.split(":")[1]))
                 if isinstance(cap, str) else None)
     stopper = STOP_RULE.stopper()
     per_view, residuals, last = [], [], 0
@@ -186,7 +192,7 @@ def replay(rec: dict, rule: str, cap) -> dict:
             if abs(math.log(key / lam)) > NEAR:
                 return {"rule": rule, "cap": cap, "error": f"lam {lam:g} not recorded"}
             near |= abs(math.log(key / lam)) > 1e-6
-            cands.append(_candidate(have[key], key, cap, ee, rule))
+            cands.append(_candidate(have[key], key, cap, ee, rule, default_cap(rec["n"])))
             cands[-1]["grid_lam"] = lam
         if rule == "one_se_paired":
             chosen = _one_se_paired(cands)
@@ -218,26 +224,29 @@ def oracle(rec: dict, cap=None) -> dict:
 
 
 def summarise(recs: list) -> dict:
+    """Every rule at every cap on every case; means per set and grid size (``means`` keyed
+    "tuning, 64^3")."""
     caps = list(FIXED_CAPS) + [f"widen:{g:g}" for g in WIDEN_GAINS]
     out = {"cases": {}, "means": {}}
     for r in recs:
         o = oracle(r)
         row = {"set": r["set"], "n": r["n"], "oracle": o, "oracle_60": oracle(r, 60),
-               "rules": {}}
+               "oracle_at_default_cap": oracle(r, default_cap(r["n"])), "rules": {}}
         for rule in RULE_NAMES:
             for cap in caps:
                 row["rules"][f"{rule}@{cap}"] = replay(r, rule, cap)
         out["cases"][f"{r['case']}_{r['n']}"] = row
-    for which in ("tuning", "confirmation"):
-        rows = [v for v in out["cases"].values() if v["set"] == which]
-        if not rows:
-            continue
-        m = {"oracle": statistics.mean(v["oracle"]["psnr_3d"] for v in rows)}
-        for key in rows[0]["rules"]:
-            vals = [v["rules"][key].get("psnr_3d") for v in rows]
-            if None not in vals:
-                m[key] = statistics.mean(vals)
-        out["means"][which] = m
+    for n in sorted({v["n"] for v in out["cases"].values()}):
+        for which in ("tuning", "confirmation"):
+            rows = [v for v in out["cases"].values() if v["set"] == which and v["n"] == n]
+            if not rows:
+                continue
+            m = {"oracle": statistics.mean(v["oracle"]["psnr_3d"] for v in rows)}
+            for key in rows[0]["rules"]:
+                vals = [v["rules"][key].get("psnr_3d") for v in rows]
+                if None not in vals:
+                    m[key] = statistics.mean(vals)
+            out["means"][f"{which}, {n}^3"] = m
     return out
 
 
@@ -256,7 +265,8 @@ def markdown(summary: dict) -> str:
              "rule after it).", ""]
     cases = summary["cases"]
     keys = list(next(iter(cases.values()))["rules"])
-    lines += _summary_at(summary, "60")
+    for n in sorted({v["n"] for v in cases.values()}):
+        lines += _summary_at(summary, n)
     rules = list(dict.fromkeys(k.split("@")[0] for k in keys))
     for rule in rules:
         cols = [k for k in keys if k.split("@")[0] == rule]
@@ -278,30 +288,44 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _summary_at(summary: dict, cap: str) -> list:
-    """Each rule's mean at one cap per set, and its mean distance to the best rule of each
-    case (the per-case maximum over the rules that every case could replay)."""
-    cases = summary["cases"]
+def _count(k: int) -> str:
+    return f"{k} case" if k == 1 else f"{k} cases"
+
+
+def _summary_at(summary: dict, n: int) -> list:
+    """On the n^3 cases at PDHG's default cap there: each rule's mean per set, and its mean
+    distance to the best rule of each case (the per-case maximum over the rules that every
+    case could replay); then the oracle within that cap and at any recorded count."""
+    cap = str(default_cap(n))
+    cases = {k: v for k, v in summary["cases"].items() if v["n"] == n}
     rules = [r for r in RULE_NAMES
              if all("psnr_3d" in v["rules"][f"{r}@{cap}"] for v in cases.values())]
-    lines = [f"## Summary at cap {cap}", "", "Mean 3-D PSNR (dB) per set; in brackets the "
-             "mean distance to the best of these rules on each case.", "",
+    sets = [w for w in ("tuning", "confirmation") if any(v["set"] == w for v in cases.values())]
+    lines = [f"## Summary at {n}^3, cap {cap} (the default there)", "",
+             "Mean 3-D PSNR (dB) per set; in brackets the mean distance to the best of these "
+             "rules on each case.", "",
              "| rule | " + " | ".join(
-                 f"{w} ({sum(v['set'] == w for v in cases.values())} cases)"
-                 for w in ("tuning", "confirmation")) + " |", "|---|---|---|"]
+                 f"{w} ({_count(sum(v['set'] == w for v in cases.values()))})" for w in sets)
+             + " |", "|---|" + "---|" * len(sets)]
     best = {k: max(v["rules"][f"{r}@{cap}"]["psnr_3d"] for r in rules)
             for k, v in cases.items()}
     for rule in rules:
         cells = []
-        for which in ("tuning", "confirmation"):
+        for which in sets:
             vs = [(k, v) for k, v in cases.items() if v["set"] == which]
-            if not vs:
-                cells.append("-")
-                continue
             got = [v["rules"][f"{rule}@{cap}"]["psnr_3d"] for _, v in vs]
             cells.append(f"{statistics.mean(got):.2f} "
                          f"({statistics.mean(g - best[k] for g, (k, _) in zip(got, vs)):+.2f})")
         lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    for label, key in ((f"oracle within {cap}", "oracle_at_default_cap"),
+                       ("oracle, any recorded count", "oracle")):
+        cells = []
+        for which in sets:
+            vs = [(k, v) for k, v in cases.items() if v["set"] == which]
+            got = [v[key]["psnr_3d"] for _, v in vs]
+            cells.append(f"{statistics.mean(got):.2f} "
+                         f"({statistics.mean(g - best[k] for g, (k, _) in zip(got, vs)):+.2f})")
+        lines.append(f"| *{label}* | " + " | ".join(cells) + " |")
     return lines + [""]
 
 
