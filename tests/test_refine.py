@@ -155,6 +155,33 @@ def test_gr_refine_option(tiny_case, capsys, tmp_path):
         reconstruct(tiny_case, "gr", refine_output="grid", **opts)
 
 
+def test_refine_anchor_is_the_held_out_choice(tiny_case, monkeypatch):
+    """refine_anchor="auto" decides the length with the anchor and without it and keeps the
+    form with the lower held-out residual (recorded); "off" never builds anchored data;
+    an unknown value is a one-line error naming the option."""
+    from mi_grg.methods import reconstruct
+    from mi_grg.training import result
+    from mi_grg.training.config import ConfigError
+    opts = dict(iterations=300, n_points=300, eval_every=200, holdout_every=3,
+                progress=False)
+    _, m = reconstruct(tiny_case, "gr", **opts)
+    r = m["method_info"]["refine"]
+    a = r["anchor"]
+    assert a["rule"] == "auto" and set(a["heldout_mse"]) == {"anchored", "plain"}
+    mse = a["heldout_mse"]
+    assert a["anchored"] == (mse["anchored"] <= mse["plain"])
+    assert r["heldout_mse"]["refined"] == min(mse.values())
+
+    def no_anchor(*args, **kwargs):
+        raise AssertionError("refine_anchor=off built anchored data")
+    monkeypatch.setattr(result, "anchored_data", no_anchor)
+    _, m = reconstruct(tiny_case, "gr", refine_anchor="off", **opts)
+    a = m["method_info"]["refine"]["anchor"]
+    assert a["anchored"] is False and list(a["heldout_mse"]) == ["plain"]
+    with pytest.raises(ConfigError, match="refine_anchor must be one of"):
+        reconstruct(tiny_case, "gr", refine_anchor="maybe", **opts)
+
+
 def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkeypatch):
     """holdout_every=0: the run trains every view from the start; a second run with the stop
     rule's split (here one view in 3, as 6 views allow) gives the kept state the length is
@@ -179,9 +206,9 @@ def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkey
     seen = {}
     real = result.decide_length
 
-    def spy(trainer, kept, progress=True):
+    def spy(trainer, kept, progress=True, anchored=True):
         seen.update(held=list(trainer.held_idx), kept=result.field_volume(trainer, kept))
-        return real(trainer, kept, progress)
+        return real(trainer, kept, progress, anchored)
     monkeypatch.setattr(result, "decide_length", spy)
     t = Trainer(tiny_case, make_config("gr", holdout_every=0, **opts), progress=False)
     t.run()

@@ -36,7 +36,7 @@ CHECKPOINT_NAME = "checkpoint.npz"
 # must not be listed, so that such runs count as stale and such checkpoints do not resume.
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
                "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk",
-               "frozen_step": False, "refine": "none",
+               "frozen_step": False, "refine": "none", "refine_anchor": "on",
                # before it, the schedule stretched to the run's count: the same as today's
                # None wherever the count was at most the rule's (staleness._auto_changed)
                "horizon": None,

@@ -46,7 +46,7 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 #: Fields that act only after training (on the returned state): a resume may change them,
 #: since no checkpointed state depends on them, but a finished run is stale for them.
 AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
-                  "fit_iterations", "voxel_average")
+                  "refine_anchor", "fit_iterations", "voxel_average")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
 # without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
@@ -69,6 +69,11 @@ REFINE_MODES = ("none", "tv")
 #: fitted back into the Gaussians (what is exported is what is scored), or "voxels", the
 #: refined grid itself as vol_pred, the Gaussians before it exported under another name.
 REFINE_OUTPUTS = ("gaussians", "voxels")
+
+#: The refinement's data (``Protocol.refine_anchor``): "on", anchored on the field's own
+#: projections; "off", the measured projections; "auto", whichever of the two reaches the
+#: lower held-out residual (``mi_grg.training.result``).
+REFINE_ANCHORS = ("auto", "on", "off")
 
 #: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
@@ -227,6 +232,10 @@ class Protocol:
     refine_lam: float = 0.003      # the refinement's TV weight (PDHG's dimensionless lam)
     refine_max_iterations: int = 200  # cap on the refinement's length (the held-out
                                    # residual chooses within it; metrics say when it binds)
+    refine_anchor: str = "auto"    # the refinement's data: "on" anchored on the field's
+                                   # own projections, "off" the measured ones, "auto" the
+                                   # one with the lower held-out residual (why:
+                                   # docs/benchmarks.md, "The refinement's anchor")
     refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
                                    # the Gaussians, vol_pred is their voxelisation;
                                    # "voxels": vol_pred is the refined grid
@@ -343,6 +352,9 @@ def _validate(c: dict) -> None:
     if c["refine"] not in REFINE_MODES:
         raise ConfigError(f"refine must be one of {', '.join(REFINE_MODES)}, got "
                           f"{c['refine']!r}")
+    if c["refine_anchor"] not in REFINE_ANCHORS:
+        raise ConfigError(f"refine_anchor must be one of {', '.join(REFINE_ANCHORS)}, got "
+                          f"{c['refine_anchor']!r}")
     if c["refine_output"] not in REFINE_OUTPUTS:
         raise ConfigError(f"refine_output must be one of {', '.join(REFINE_OUTPUTS)}, got "
                           f"{c['refine_output']!r}")

@@ -21,6 +21,11 @@ it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
    ``refine_max_iterations`` (the record says when that cap binds). That many iterations
    then run from the returned field on every view. Without held-out views a decision run
    supplies the kept state (``decision_run``).
+   The anchor helps where a voxel grid misses what the field resolves (thin needles, sharp
+   edges) and costs where the field carries voxel-scale noise (dense micro-CT volumes).
+   ``refine_anchor="auto"`` decides the length both with it and without it (b' = b) and
+   refines with the form whose held-out residual is lower: both residuals predict the
+   same measured views (A x plus the anchor, or A x alone). "on" / "off" fix the form.
 3. **Back into the Gaussians** (``refine_output="gaussians"``): the refined grid is
    fitted by the field it started from (``mi_grg.training.distill``); vol_pred is that
    field's voxelisation. ``refine_output="voxels"`` returns the grid itself and exports
@@ -109,9 +114,11 @@ def anchored_data(trainer, g: Gaussians, vol: np.ndarray, views) -> np.ndarray:
     return trainer.case.train[views] - (projections(trainer, g, views) - joseph)
 
 
-def decide_length(trainer, kept: Gaussians, progress: bool = True) -> dict:
+def decide_length(trainer, kept: Gaussians, progress: bool = True,
+                  anchored: bool = True) -> dict:
     """The refinement's length from the kept field (module docstring, step 2): PDHG on the
-    fitted views' anchored data, the held-out residual every ``CHECK_EVERY`` iterations.
+    fitted views' anchored data (``anchored``, else the measured data), the held-out
+    residual every ``CHECK_EVERY`` iterations.
     Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "seconds"}."""
     from mi_grg.classical.pdhg import PDHG
     from mi_grg.core.joseph import forward_project
@@ -121,8 +128,11 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True) -> dict:
     held = np.asarray(trainer.held_idx)
     fit = np.setdiff1d(np.arange(geo.n_views), held)
     start = field_volume(trainer, kept)
-    b_fit = anchored_data(trainer, kept, start, fit)
-    b_held = anchored_data(trainer, kept, start, held)
+    if anchored:
+        b_fit = anchored_data(trainer, kept, start, fit)
+        b_held = anchored_data(trainer, kept, start, held)
+    else:
+        b_fit, b_held = trainer.case.train[fit], trainer.case.train[held]
 
     def held_mse(x):
         r = forward_project(x, geo, geo.angles[held]) - b_held
@@ -131,7 +141,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True) -> dict:
     solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start)
     cap = int(cfg.refine_max_iterations)
     curve = [(0, held_mse(start))]
-    with tqdm(total=cap, desc="refine: its length", disable=not progress, leave=False) as bar:
+    desc = f"refine: its length ({'anchored' if anchored else 'plain'})"
+    with tqdm(total=cap, desc=desc, disable=not progress, leave=False) as bar:
         for it in range(1, cap + 1):
             solver.step()
             bar.update(1)
@@ -151,12 +162,21 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     from mi_grg.classical.pdhg import pdhg
     from mi_grg.training.distill import fit_to_volume
     cfg, geo = trainer.cfg.protocol, trainer.case.geometry
-    length = decide_length(decider, kept, progress)
+    forms = {"auto": (True, False), "on": (True,), "off": (False,)}[cfg.refine_anchor]
+    lengths = {a: decide_length(decider, kept, progress, anchored=a) for a in forms}
+    # ties keep the anchor (listed first)
+    anchored = min(forms, key=lambda a: min(c[1] for c in lengths[a]["curve"]))
+    length = lengths[anchored]
     info = {"lam": cfg.refine_lam, "iterations": length["iterations"],
             "at_cap": length["at_cap"], "cap": cfg.refine_max_iterations,
             "heldout_mse": {"start": length["curve"][0][1],
                             "refined": min(c[1] for c in length["curve"])},
-            "curve": length["curve"], "decision_seconds": length["seconds"]}
+            "curve": length["curve"],
+            "decision_seconds": sum(x["seconds"] for x in lengths.values()),
+            "anchor": {"rule": cfg.refine_anchor, "anchored": anchored,
+                       "heldout_mse": {("anchored" if a else "plain"):
+                                       min(c[1] for c in x["curve"])
+                                       for a, x in lengths.items()}}}
     if length["at_cap"]:
         print(f"refine=tv: the held-out residual still fell at refine_max_iterations="
               f"{cfg.refine_max_iterations} (metrics.json: at_cap); a higher cap is an option "
@@ -165,8 +185,9 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
         return vol, field, {**info, "grid": vol}
     t0 = time.perf_counter()
     every = np.arange(geo.n_views)
-    grid = pdhg(anchored_data(trainer, field, vol, every), geo, n_iter=length["iterations"],
-                lam=cfg.refine_lam, init=vol, progress=False)
+    data = anchored_data(trainer, field, vol, every) if anchored else trainer.case.train
+    grid = pdhg(data, geo, n_iter=length["iterations"], lam=cfg.refine_lam, init=vol,
+                progress=False)
     info["final_seconds"] = time.perf_counter() - t0
     info["grid"] = grid
     if cfg.refine_output == "voxels":
