@@ -307,6 +307,9 @@ def _summary_at(summary: dict, n: int) -> list:
              "| rule | " + " | ".join(
                  f"{w} ({_count(sum(v['set'] == w for v in cases.values()))})" for w in sets)
              + " |", "|---|" + "---|" * len(sets)]
+    if not rules:
+        return lines[:-3] + ["No rule could be replayed on every case (a lam it needs was not "
+                             "recorded).", ""]
     best = {k: max(v["rules"][f"{r}@{cap}"]["psnr_3d"] for r in rules)
             for k, v in cases.items()}
     for rule in rules:
