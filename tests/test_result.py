@@ -55,7 +55,8 @@ def test_length_is_the_held_out_minimum_and_the_cap_is_said(trained, capsys, mon
     monkeypatch.setattr(t.cfg.protocol, "refine_max_iterations", 5)
     field = result._averaged(t, t.field_gaussians())
     monkeypatch.setattr(result, "decide_length", lambda *a, **k: {
-        "iterations": 5, "at_cap": True, "curve": [(0, 1.0), (5, 0.5)], "seconds": 0.0})
+        "iterations": 5, "at_cap": True, "curve": [(0, 1.0), (5, 0.5)], "heldout_mse": 0.5,
+        "seconds": 0.0})
     vol, g, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert info["at_cap"] and "a higher cap is an option" in capsys.readouterr().err

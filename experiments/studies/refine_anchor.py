@@ -43,7 +43,7 @@ def decide(tr, case, anchor: bool) -> dict:
     kept, _, decider = result.kept_field(tr, False)
     d = result.decide_length(decider, kept, False, anchored=anchor)
     held = np.asarray(decider.held_idx)
-    return {"iterations": d["iterations"], "heldout_mse": min(c[1] for c in d["curve"]),
+    return {"iterations": d["iterations"], "heldout_mse": d["heldout_mse"],
             "heldout_mse_start": d["curve"][0][1], "seconds": d["seconds"], "kept": kept,
             "decider": decider, "held": held, "start": result.field_volume(decider, kept),
             "fit": np.setdiff1d(np.arange(geo.n_views), held)}

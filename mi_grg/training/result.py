@@ -119,7 +119,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     """The refinement's length from the kept field (module docstring, step 2): PDHG on the
     fitted views' anchored data (``anchored``, else the measured data), the held-out
     residual every ``CHECK_EVERY`` iterations.
-    Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "seconds"}."""
+    Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "heldout_mse"
+    (the curve's minimum, at "iterations"), "seconds"}."""
     from mi_grg.classical.pdhg import PDHG
     from mi_grg.core.joseph import forward_project
     from tqdm import tqdm
@@ -149,9 +150,9 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
             if it % CHECK_EVERY == 0 or it == cap:
                 x = np.asarray(solver.x.numpy(), np.float32).reshape(geo.nVoxel)
                 curve.append((it, held_mse(x)))
-    best = min(curve, key=lambda c: c[1])[0]
+    best, best_mse = min(curve, key=lambda c: c[1])
     return {"iterations": best, "at_cap": best == cap, "curve": curve,
-            "seconds": time.perf_counter() - t0}
+            "heldout_mse": best_mse, "seconds": time.perf_counter() - t0}
 
 
 def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, decider,
@@ -165,17 +166,15 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     forms = {"auto": (True, False), "on": (True,), "off": (False,)}[cfg.refine_anchor]
     lengths = {a: decide_length(decider, kept, progress, anchored=a) for a in forms}
     # ties keep the anchor (listed first)
-    anchored = min(forms, key=lambda a: min(c[1] for c in lengths[a]["curve"]))
+    anchored = min(forms, key=lambda a: lengths[a]["heldout_mse"])
     length = lengths[anchored]
     info = {"lam": cfg.refine_lam, "iterations": length["iterations"],
             "at_cap": length["at_cap"], "cap": cfg.refine_max_iterations,
-            "heldout_mse": {"start": length["curve"][0][1],
-                            "refined": min(c[1] for c in length["curve"])},
+            "heldout_mse": {"start": length["curve"][0][1], "refined": length["heldout_mse"]},
             "curve": length["curve"],
             "decision_seconds": sum(x["seconds"] for x in lengths.values()),
             "anchor": {"rule": cfg.refine_anchor, "anchored": anchored,
-                       "heldout_mse": {("anchored" if a else "plain"):
-                                       min(c[1] for c in x["curve"])
+                       "heldout_mse": {("anchored" if a else "plain"): x["heldout_mse"]
                                        for a, x in lengths.items()}}}
     if length["at_cap"]:
         print(f"refine=tv: the held-out residual still fell at refine_max_iterations="
