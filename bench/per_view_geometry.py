@@ -9,17 +9,22 @@ the Shepp-Logan phantom, scanned four ways:
 * ``wobbling``: source height +-0.12, detector roll +-2 degrees, DSD +-3 %, varying per
   view (``mi_grg.data.orbits.wobbling``);
 * ``wobbling_ignored``: the wobbling scan's projections reconstructed on the nominal
-  circle (its vectors dropped), what a reader that ignores them does.
+  circle (its vectors dropped), what a reader that ignores them does;
+* ``skewed``: the wobbling scan with its detector rows sheared against the columns by
+  +-5 degrees per view (``wobbling(..., skew_deg=5)``: a parallelogram pixel grid);
+* ``skewed_ignored``: the skewed scan's projections reconstructed with rows at right
+  angles (the wobbling scan's vectors), what a reader that squares the grid does.
 
 Methods fdk, pdhg and gr (gr with ``--gr-iterations``, small so that it runs on a loaded
 CPU); FDK's half-fan loss by view count, with and without noise; FDK on a short scan (180
 degrees plus the fan angle) with and without Parker's weights. Speed: the Joseph
 projector (A and A^T) and the Gaussian projector (25 views) on the circular scan, the same
-scan given as vectors, and the wobbling scan (medians of repeats).
+scan given as vectors, the wobbling scan and the skewed one (medians of repeats).
 
     python bench/per_view_geometry.py                     # 32^3, gr 500 iterations
     python bench/per_view_geometry.py --n 64 --gr-iterations 1500
     python bench/per_view_geometry.py --parts short_scan   # only that table, merged
+    python bench/per_view_geometry.py --parts quality --scans skewed skewed_ignored
 
 Writes docs/bench/per_view_geometry.json and .md.
 """
@@ -34,12 +39,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SCANS = ("circular", "half_fan", "wobbling", "wobbling_ignored")
+SCANS = ("circular", "half_fan", "wobbling", "wobbling_ignored", "skewed", "skewed_ignored")
+SKEW_DEG = 5.0
 PARTS = ("speed", "quality", "fdk_gap", "short_scan")
 
 
 def cases(n: int) -> dict:
-    """The four cases (Case objects) of one phantom at n^3."""
+    """The cases (Case objects, ``SCANS``) of one phantom at n^3."""
     import numpy as np
     from mi_grg.data.noise import NoiseModel
     from mi_grg.data.orbits import half_fan, wobbling
@@ -52,18 +58,25 @@ def cases(n: int) -> dict:
            "half_fan": simulate_case("shepp", half_fan(geo, 0.3), test, NoiseModel(), seed=0),
            "wobbling": simulate_case("shepp", allv.with_angles(geo.angles), test,
                                      NoiseModel(), seed=0)}
-    ignored = out["wobbling"]
-    out["wobbling_ignored"] = type(ignored)(
-        geometry=ignored.geometry.circular(), train=ignored.train,
-        test_angles=ignored.test_angles, test=ignored.test, vol_gt=ignored.vol_gt,
-        info=ignored.info)
-    return out
+    sheared = wobbling(geo.with_angles(np.concatenate([geo.angles, test])),
+                       height=0.12, roll_deg=2.0, dsd=0.03, skew_deg=SKEW_DEG)
+    out["skewed"] = simulate_case("shepp", sheared.with_angles(geo.angles), test,
+                                  NoiseModel(), seed=0)
+
+    def regeometry(case, geometry):
+        return type(case)(geometry=geometry, train=case.train, test_angles=case.test_angles,
+                          test=case.test, vol_gt=case.vol_gt, info=case.info)
+    out["wobbling_ignored"] = regeometry(out["wobbling"], out["wobbling"].geometry.circular())
+    out["skewed_ignored"] = regeometry(out["skewed"], out["wobbling"].geometry)
+    return {k: out[k] for k in SCANS}
 
 
-def quality(n: int, gr_iterations: int, methods) -> list:
+def quality(n: int, gr_iterations: int, methods, scans=SCANS) -> list:
     import mi_grg
     rows = []
     for scan, case in cases(n).items():
+        if scan not in scans:
+            continue
         for method in methods:
             opts = {} if method == "fdk" else {"progress": False}
             if method == "gr":
@@ -162,7 +175,7 @@ def speed(n: int, reps: int) -> list:
                              rng.uniform(0.5, 2.0, 20000))
     rows = []
     for name, gg in (("circular", geo), ("circular_as_vectors", geo.as_vectors()),
-                     ("wobbling", wobbling(geo))):
+                     ("wobbling", wobbling(geo)), ("skewed", wobbling(geo, skew_deg=SKEW_DEG))):
         A = JosephProjector(gg)
         x = mi.Float(rng.uniform(0, 1, A.n_vox).astype(np.float32))
         y = mi.Float(rng.uniform(0, 1, gg.n_views * A.n_pix).astype(np.float32))
@@ -228,12 +241,15 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS),
                     help="what to measure; the others are kept from an existing JSON")
+    ap.add_argument("--scans", nargs="+", choices=SCANS, default=list(SCANS),
+                    help="the quality part's scans; the other scans' rows are kept")
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench" / "per_view_geometry"))
     args = ap.parse_args(argv)
     import mi_grg  # noqa: F401  (first: Dr.Jit's LLVM library)
     out = Path(args.out)
     res = {}
-    if set(args.parts) != set(PARTS) and out.with_suffix(".json").is_file():
+    partial = set(args.parts) != set(PARTS) or set(args.scans) != set(SCANS)
+    if partial and out.with_suffix(".json").is_file():
         res = json.loads(out.with_suffix(".json").read_text())
         if res.get("n") != args.n:
             ap.error(f"--n {args.n} differs from the existing {out}.json's n = {res.get('n')}")
@@ -242,8 +258,13 @@ def main(argv=None) -> int:
     if "speed" in args.parts:
         res.update(speed_n=args.speed_n, speed=speed(args.speed_n, args.reps))
     if "quality" in args.parts:
+        if res.get("quality") and set(args.scans) != set(SCANS) \
+                and res.get("gr_iterations") != args.gr_iterations:
+            ap.error(f"--gr-iterations {args.gr_iterations} differs from the kept rows' "
+                     f"{res.get('gr_iterations')}")
+        kept = [r for r in res.get("quality", []) if r["scan"] not in args.scans]
         res.update(gr_iterations=args.gr_iterations,
-                   quality=quality(args.n, args.gr_iterations, args.methods))
+                   quality=kept + quality(args.n, args.gr_iterations, args.methods, args.scans))
     if "fdk_gap" in args.parts:
         res["fdk_gap"] = fdk_gap(args.n)
     if "short_scan" in args.parts:

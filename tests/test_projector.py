@@ -164,13 +164,19 @@ def _fd(fun, params, key, h=1e-6):
     return out
 
 
-@pytest.mark.parametrize("case", ["cone", "parallel", "near_source"])
+@pytest.mark.parametrize("case", ["cone", "parallel", "near_source", "skewed cone",
+                                  "skewed parallel", "skewed near_source"])
 def test_gradients_all_parameters_vs_finite_differences(variant, case, rng):
     import drjit as dr
     import mitsuba as mi
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.projector import project_dr
+    from mi_grg.data.orbits import wobbling
+    skewed = case.startswith("skewed ")
+    case = case.removeprefix("skewed ")
     geo = geometry("parallel" if case == "parallel" else "cone", nd=(12, 16), views=2)
+    if skewed:      # the pixel rows sheared by ~6 degrees against the columns, source kept
+        geo = wobbling(geo, height=0.0, roll_deg=0.0, dsd=0.0, skew_deg=12.0)
     if case == "near_source":   # one Gaussian straddling the source, one regular, one close
         src = 5.0 * np.array([math.cos(geo.angles[0]), math.sin(geo.angles[0]), 0.0])
         pos = np.stack([src * 0.93 + [0, 0.05, 0.02], [0.2, -0.1, 0.1], src * 0.7])

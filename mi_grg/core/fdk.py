@@ -105,13 +105,20 @@ def _view_weights(p, geo: Geometry):
     f = fdk_geometry.view_fdk_frames(geo)
     nv, nu = geo.nDetector
     vec = f["vectors"]
-    du = np.linalg.norm(vec[:, 6:9], axis=1)[:, None, None]
-    dv = np.linalg.norm(vec[:, 9:12], axis=1)[:, None, None]
-    u = (np.arange(nu) + 0.5 - nu / 2)[None, None, :] * du - f["u0"][:, None, None]
-    v = (np.arange(nv) + 0.5 - nv / 2)[None, :, None] * dv - f["v0"][:, None, None]
-    dsd = f["dsd"][:, None, None]
-    p = p * (dsd / np.sqrt(dsd ** 2 + u ** 2 + v ** 2))
-    return p, du * (f["dso"] / f["dsd"])[:, None, None]
+    U, V = vec[:, 6:9], vec[:, 9:12]
+    # the pixel's squared distance from the principal point, |a U + b V - rel|^2 with
+    # rel = foot - centre: written with dot products, so sheared rows are measured right
+    rel = f["foot"] - vec[:, 3:6]
+    a = (np.arange(nu) + 0.5 - nu / 2)[None, None, :]
+    b = (np.arange(nv) + 0.5 - nv / 2)[None, :, None]
+    col = lambda x: x[:, None, None]  # noqa: E731
+    dot = lambda x, y: col(np.sum(x * y, 1))  # noqa: E731
+    r2 = (a * a * dot(U, U) + 2 * a * b * dot(U, V) + b * b * dot(V, V)
+          - 2 * a * dot(U, rel) - 2 * b * dot(V, rel) + dot(rel, rel))
+    dsd = col(f["dsd"])
+    p = p * (dsd / np.sqrt(dsd ** 2 + np.maximum(r2, 0.0)))
+    du = col(np.linalg.norm(U, axis=1))
+    return p, du * col(f["dso"] / f["dsd"])
 
 
 def _magnification(s, cone, DSD, DSO):
@@ -200,12 +207,12 @@ def fdk_backproject(q: np.ndarray, geometry: Geometry, angles=None) -> "mi.Float
 
 def _bp_tables(geo: Geometry) -> list:
     """Per-view back-projection constants [view] (float64): source (parallel: 0), unit
-    normal n (source towards detector), detector centre, u / |u|^2, v / |v|^2, DSO_i."""
+    normal n (source towards detector), detector centre, the dual steps of u and v (a
+    plane offset dotted with them gives its column and row offsets), DSO_i."""
     f = fdk_geometry.view_fdk_frames(geo)
     vec = f["vectors"]
     src = vec[:, 0:3] if geo.mode == "cone" else np.zeros((len(vec), 3))
-    iu = vec[:, 6:9] / np.sum(vec[:, 6:9] ** 2, 1, keepdims=True)
-    iv = vec[:, 9:12] / np.sum(vec[:, 9:12] ** 2, 1, keepdims=True)
+    iu, iv = fdk_geometry.dual_steps(vec[:, 6:9], vec[:, 9:12])
     dso = f["dso"] if geo.mode == "cone" else np.ones(len(vec))
     cols = [src, f["n"], vec[:, 3:6], iu, iv]
     return [c[:, k] for c in cols for k in range(3)] + [dso]

@@ -161,9 +161,10 @@ def pad_offset_detector(proj: np.ndarray, geo: Geometry):
 
 
 def view_fdk_frames(geo: Geometry) -> dict:
-    """Per-view FDK frame, float64 [view] / [view, 3]: ``dsd``, ``dso``, principal point
-    ``u0``, ``v0`` (length, from the detector centre along the unit axes), unit ``n``
-    (source towards detector), and the rows of ``view_vectors``."""
+    """Per-view FDK frame, float64 [view] / [view, 3]: ``dsd``, ``dso``, the principal
+    point ``foot`` (where the normal through the source meets the detector plane;
+    parallel beam: the ray through the axis), unit ``n`` (source towards detector), and
+    the rows of ``view_vectors``."""
     vec = geo.view_vectors()
     s, d, U, V = vec[:, 0:3], vec[:, 3:6], vec[:, 6:9], vec[:, 9:12]
     eu = U / np.linalg.norm(U, axis=1, keepdims=True)
@@ -179,9 +180,18 @@ def view_fdk_frames(geo: Geometry) -> dict:
         n *= np.sign(np.sum(s * n, 1))[:, None]
         dsd = dso = np.full(len(vec), np.inf)
         foot = d - np.sum(d * n, 1)[:, None] * n      # where the ray through the axis meets
-    rel = foot - d
-    return {"dsd": dsd, "dso": dso, "u0": np.sum(rel * eu, 1), "v0": np.sum(rel * ev, 1),
-            "n": n, "vectors": vec}
+    return {"dsd": dsd, "dso": dso, "foot": foot, "n": n, "vectors": vec}
+
+
+def dual_steps(U, V):
+    """Rows iu, iv [view, 3] with iu . U = iv . V = 1 and iu . V = iv . U = 0 in the
+    detector plane: the column and row offsets of a plane offset h are h . iu, h . iv,
+    also where U and V are not at right angles (U / |U|^2, V / |V|^2 where they are)."""
+    uu, vv, uv = (np.sum(x * y, 1, keepdims=True) for x, y in ((U, U), (V, V), (U, V)))
+    if not np.any(uv):
+        return U / uu, V / vv
+    det = uu * vv - uv * uv
+    return (vv * U - uv * V) / det, (uu * V - uv * U) / det
 
 
 def _elevation_deg(a) -> float:

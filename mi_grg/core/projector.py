@@ -52,8 +52,10 @@ packet store, adds its gradient sums to its record with one packet store and rea
 record with one packet load (a SIMD scatter-add resolves lane conflicts one lane at a time
 on the CPU); internal images then pad their rows to a whole number of packets.
 
-Per-view scans: views whose detector values (distance, offsets, pixel steps) differ are
-projected in runs of equal values (``ViewFrames.groups``); a circular scan is one run.
+Per-view scans: views whose detector values (distance, offsets, pixel steps, shear)
+differ are projected in runs of equal values (``ViewFrames.groups``); a circular scan is
+one run. A skewed detector (rows sheared against columns) keeps the frame orthonormal and
+takes the closed form in the sheared pixel coordinates (``DetectorConstants.to_pixels``).
 
 Where it lives: ``view_frames`` (detector frames from the ray formula),
 ``projector_inputs`` (checks, ``ProjectorError``), ``projector_records`` (the closed form

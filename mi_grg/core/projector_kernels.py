@@ -113,6 +113,7 @@ class _RegularLane:
             self.z2p1 = 1 + self.z2 * self.z2
             sv_len = det.a_v + v * det.dv
             self.h2sv2 = det.h2 + sv_len * sv_len
+            self.au = det.a_u_row(v)
 
     def pixel(self, det, u):
         """(du, y1, num, z1, den, 1 / den, m^2, L / sqrt(den) exp(-m^2 / 2)) at column u
@@ -123,7 +124,7 @@ class _RegularLane:
         if self.cone:
             z1 = dr.fma(self.D11, du, self.c2)
             den = dr.fma(z1, z1, self.z2p1)
-            su_len = dr.fma(u, det.du, det.a_u)
+            su_len = dr.fma(u, det.du, self.au)
             # L / sqrt(den) = sqrt(L^2 / den): one reciprocal and one square root per pixel
             inv_den = dr.rcp(den)
             m2 = num * inv_den
@@ -322,6 +323,7 @@ class _NearLane:
         v = F(row) + 0.5
         self.sv_len = det.a_v + v * det.dv
         self.h2sv2 = det.h2 + self.sv_len * self.sv_len
+        self.au = det.a_u_row(v)
         M = self.M
         self.kl = [M[l][0] * det.h + M[l][2] * self.sv_len for l in range(3)]   # row-constant part of M r
         self.pix0 = lane_base(vbase, rec) + row * det.stride
@@ -331,7 +333,7 @@ class _NearLane:
         Phi(s)) at pixel column j."""
         M, gv = self.M, self.gv
         u = mi.Float(j) + 0.5
-        su_len = dr.fma(u, det.du, det.a_u)
+        su_len = dr.fma(u, det.du, self.au)
         L = dr.sqrt(dr.fma(su_len, su_len, self.h2sv2))
         D = [dr.fma(M[l][1], su_len, self.kl[l]) for l in range(3)]
         q = dr.maximum(D[0] * D[0] + D[1] * D[1] + D[2] * D[2], 1e-30)

@@ -30,7 +30,9 @@ SQRT_2PI = math.sqrt(2.0 * math.pi)
 class DetectorConstants:
     """Geometry scalars as opaque Dr.Jit values (one compiled kernel for all geometries);
     the detector values are those of view ``view`` of ``fr`` (all views of one launch
-    share them, ``ViewFrames.groups``)."""
+    share them, ``ViewFrames.groups``). ``skewed`` (a Python flag, ``ViewFrames.skewed``):
+    the records and kernels carry the pixel lattice's shear ``sk``; a rectangular grid's
+    kernels are those without it."""
 
     def __init__(self, fr: ViewFrames, geometry: Geometry, extent: float, view: int = 0):
         F = mi.Float
@@ -42,11 +44,13 @@ class DetectorConstants:
         stride = -(-nu // lanes.PACKET) * lanes.PACKET if lanes.use_packets() else nu
         self.stride_py = stride
         self.stride = dr.opaque(mi.Int32, stride)
-        h, a_u, a_v, du, dv = fr.detector_values(view)
+        h, a_u, a_v, du, dv, sk = fr.detector_values(view)
         self.h = dr.opaque(F, h)
         self.h2 = dr.opaque(F, h * h)
         self.a_u, self.a_v = dr.opaque(F, a_u), dr.opaque(F, a_v)
         self.du, self.dv = dr.opaque(F, du), dr.opaque(F, dv)
+        self.skewed = fr.skewed
+        self.sk = dr.opaque(F, sk) if fr.skewed else None
         self.E = dr.opaque(F, extent)
         self.E2 = dr.opaque(F, extent * extent)
         self.Eb2 = dr.opaque(F, (extent * (1 + BOUND_PAD)) ** 2)
@@ -58,10 +62,24 @@ class DetectorConstants:
 
     def override(self, det) -> None:
         """Take a per-view scan's detector values from ``det``, a float32 array holding
-        (h, h^2, a_u, a_v, du, dv) (``step.view_arrays``): width-1 gathers, so that a
+        (h, h^2, a_u, a_v, du, dv, sk) (``step.view_arrays``): width-1 gathers, so that a
         recorded step reads them as inputs."""
-        vals = [dr.gather(mi.Float, det, mi.UInt32(k)) for k in range(6)]
-        self.h, self.h2, self.a_u, self.a_v, self.du, self.dv = vals
+        vals = [dr.gather(mi.Float, det, mi.UInt32(k)) for k in range(7)]
+        self.h, self.h2, self.a_u, self.a_v, self.du, self.dv = vals[:6]
+        if self.skewed:
+            self.sk = vals[6]
+
+    def a_u_row(self, v):
+        """The detector-plane e_u coordinate of column 0 on row ``v`` (continuous): a_u,
+        plus the shear's v sk on a skewed detector."""
+        return dr.fma(v, self.sk, self.a_u) if self.skewed else self.a_u
+
+    def to_pixels(self, x, y):
+        """Pixel offsets (u, v) of the detector-plane offsets (x, y) along (e_u, e_v)."""
+        v = y / self.dv
+        if self.skewed:
+            x = x - v * self.sk
+        return x / self.du, v
 
 
 class ViewFrameArrays:
@@ -121,7 +139,8 @@ class RecordFrame:
             md = means2d if gi is None else dr.gather(
                 mi.Vector2f, means2d, vi * dr.opaque(mi.UInt32, n_gauss) + gi, mode=loc)
             depth = dr.detach(X[0]) / det.h if det.cone else 1.0
-            X[1] = X[1] + md.x * det.du * depth
+            shift_u = md.x * det.du if det.sk is None else dr.fma(md.x, det.du, md.y * det.sk)
+            X[1] = X[1] + shift_u * depth
             X[2] = X[2] + md.y * det.dv * depth
         # Gaussian axes in the frame: Rf[axis][l] = e_axis . R[:, l]
         Rf = [[E[axis][0] * R[0][l] + E[axis][1] * R[1][l] + E[axis][2] * R[2][l] for l in range(3)]
@@ -164,13 +183,15 @@ def regular_params(frame: RecordFrame, det: DetectorConstants):
     if det.cone:
         xn, xu, xv = Xn
         lam = det.h / frame.X[0]
-        uc = (lam * frame.X[1] - det.a_u) / det.du
-        vc = (lam * frame.X[2] - det.a_v) / det.dv
+        uc, vc = det.to_pixels(lam * frame.X[1] - det.a_u, lam * frame.X[2] - det.a_v)
         # numerator: (Dq x X)^T Sigma (Dq x X) = Delta^T Wn Delta, t_l = s_l R_l^T w
         tu = [sn[l] * (Rf[0][l] * xv - Rf[2][l] * xn) for l in range(3)]
         tv = [sn[l] * (Rf[1][l] * xn - Rf[0][l] * xu) for l in range(3)]
-        w_uu = dr.square(dun) * sum(t * t for t in tu)
+        tuu = sum(t * t for t in tu)
+        w_uu = dr.square(dun) * tuu
         w_uv = dun * dvn * sum(tu[l] * tv[l] for l in range(3))
+        if det.skewed:   # the lattice's shear: W_pix = J^T W J, J = [[du, sk], [0, dv]]
+            w_uv = dr.fma(dun * det.sk * frame.isig, tuu, w_uv)
         n11r = dr.sqrt(w_uu)
         ghat = dr.sqrt(ghat2(frame))
         sdet = sn[0] * sn[1] * sn[2]
@@ -183,10 +204,13 @@ def regular_params(frame: RecordFrame, det: DetectorConstants):
         A_uv = sum(Rf[1][l] * Rf[2][l] / dr.square(sn[l]) for l in range(3))
         ra = dr.rsqrt(A_uu)
         D11 = dun * A_uu * ra / beta
-        D21 = dvn * A_uv * ra / beta
+        A_uv_pix = dvn * A_uv
+        if det.skewed:
+            A_uv_pix = dr.fma(det.sk * frame.isig, A_uu, A_uv_pix)
+        D21 = A_uv_pix * ra / beta
         D22 = dvn * dr.sqrt(S_nn / det_s) * ra / beta   # det(A_uv block) = Sigma_nn / det Sigma
-        su = -lam * (frame.X[1] - frame.X[0] * S_nu / S_nn) / det.du
-        sv = -lam * (frame.X[2] - frame.X[0] * S_nv / S_nn) / det.dv
+        su, sv = det.to_pixels(-lam * (frame.X[1] - frame.X[0] * S_nu / S_nn),
+                               -lam * (frame.X[2] - frame.X[0] * S_nv / S_nn))
         amp = frame.rho * (SQRT_2PI * frame.sig) * dr.sqrt(S_nn) / det.h
         return dict(uc=uc, vc=vc, N11=N11, N21=N21, N22=N22, D11=D11, D21=D21, D22=D22,
                     su=su, sv=sv, amp=amp)
@@ -196,8 +220,11 @@ def regular_params(frame: RecordFrame, det: DetectorConstants):
     det_uv = det_s * A_nn                            # det of Sigma's (u, v) block
     r_vv = dr.rsqrt(S_vv)
     rd = dr.rsqrt(det_uv)
-    return dict(uc=frame.X[1] / det.du, vc=frame.X[2] / det.dv,
-                N11=dun * dr.sqrt(S_vv) * rd, N21=-dvn * S_uv * r_vv * rd, N22=dvn * r_vv,
+    N21 = -dvn * S_uv * r_vv * rd
+    if det.skewed:    # Q_pix = J^T Q J as in the cone's numerator
+        N21 = dr.fma(det.sk * frame.isig * dr.sqrt(S_vv), rd, N21)
+    uc, vc = det.to_pixels(frame.X[1], frame.X[2])
+    return dict(uc=uc, vc=vc, N11=dun * dr.sqrt(S_vv) * rd, N21=N21, N22=dvn * r_vv,
                 amp=frame.rho * (SQRT_2PI * frame.sig) * dr.rsqrt(A_nn))
 
 

@@ -104,13 +104,19 @@ class StepConfig:
         circular scan (a per-view scan's differing ones come with each view's inputs,
         ``view_arrays``)."""
         from mi_grg.core.view_frames import view_frames
-        return view_frames(self.geometry.with_angles(self.geometry.angles[:1]))
+        first = view_frames(self.geometry.with_angles(self.geometry.angles[:1]))
+        # a skewed scan's kernels carry the shear in every view, view 0's too
+        return dataclasses.replace(first, skewed=self._frames.skewed)
 
     @cached_property
     def shared(self) -> bool:
         """Whether every view has the same detector values (``ViewFrames.shared``)."""
+        return self._frames.shared
+
+    @cached_property
+    def _frames(self):
         from mi_grg.core.view_frames import view_frames
-        return view_frames(self.geometry).shared
+        return view_frames(self.geometry)
 
 
 @dataclass
@@ -168,8 +174,8 @@ def view_arrays(geometry, view: int, shared: bool | None = None) -> dict:
     out = {"e": [[owned(c) for c in axis] for axis in fa.e], "o": [owned(c) for c in fa.o]}
     if not shared:
         vals = np.zeros(DETECTOR_PAD, np.float32)
-        h, a_u, a_v, du, dv = fr.detector_values(0)
-        vals[:6] = (h, h * h, a_u, a_v, du, dv)    # h^2 rounded once, as DetectorConstants
+        h, a_u, a_v, du, dv, sk = fr.detector_values(0)
+        vals[:7] = (h, h * h, a_u, a_v, du, dv, sk)   # h^2 rounded once, as DetectorConstants
         out["det"] = owned(mi.Float(vals))
     return out
 
