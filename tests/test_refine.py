@@ -206,9 +206,10 @@ def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkey
     seen = {}
     real = result.decide_length
 
-    def spy(trainer, kept, progress=True, anchored=True):
+    def spy(trainer, kept, progress=True, anchored=True, start=None):
         seen.update(held=list(trainer.held_idx), kept=result.field_volume(trainer, kept))
-        return real(trainer, kept, progress, anchored)
+        np.testing.assert_array_equal(start, seen["kept"])    # the start made once, the same
+        return real(trainer, kept, progress, anchored, start)
     monkeypatch.setattr(result, "decide_length", spy)
     t = Trainer(tiny_case, make_config("gr", holdout_every=0, **opts), progress=False)
     t.run()
