@@ -17,7 +17,7 @@ from mi_grg.core.joseph import back_project, forward_project
 from mi_grg.core.projector import project
 from mi_grg.data.orbits import half_fan, wobbling
 from test_recording import one_thread  # noqa: F401  (fixture: one Dr.Jit thread)
-from test_projector import as_arrays, quat_matrix, random_gaussians
+from test_projector import as_arrays, plane_gradients, quat_matrix, random_gaussians
 
 
 def scan(mode="cone", views=6, **kw):
@@ -157,30 +157,18 @@ def test_detector_plane_gradient_on_a_skewed_detector():
     """means2d moves a Gaussian by steps of the sheared pixel lattice: its gradient is
     the 3-D position gradient along that view's u and v steps, scaled to the Gaussian's
     depth (the chain rule through the view's own rows)."""
-    from mi_grg.core.gaussians import Gaussians
-    from mi_grg.core.projector import project_dr
     geo = wobbling(scan("cone", views=2), height=0.0, roll_deg=0.0, dsd=0.0, skew_deg=12.0)
-    pos, sc = np.array([[0.15, -0.1, 0.2]]), np.array([[0.2, 0.12, 0.3]])
-    q = np.array([[0.9, 0.2, -0.3, 0.1]]) / np.linalg.norm([0.9, 0.2, -0.3, 0.1])
     y = np.random.default_rng(4).normal(size=(2, *geo.nDetector))
-    g = Gaussians.from_numpy(pos, sc, q, [1.5])
-    md = dr.zeros(mi.Vector2f, 2)
-    dr.enable_grad(md)
-    img = project_dr(g, geo, means2d=md)
-    dr.backward(dr.sum(img.array * mi.Float(y.ravel().astype(np.float32))))
-    gmd = np.stack([np.asarray(c, np.float64) for c in dr.grad(md)], -1)   # [view, 2]
+    gmd, gp, g = plane_gradients(geo, y)
+    pos = as_arrays(g)[0][0]
     vec = geo.view_vectors()
     for k in range(2):
-        gk = Gaussians.from_numpy(pos, sc, q, [1.5])
-        dr.enable_grad(gk.positions)
-        im = project_dr(gk, geo, angles=geo.angles[k:k + 1])
-        dr.backward(dr.sum(im.array * mi.Float(y[k].ravel().astype(np.float32))))
-        gp = np.array([float(c[0]) for c in dr.grad(gk.positions)])
         s, d, U, V = vec[k, 0:3], vec[k, 3:6], vec[k, 6:9], vec[k, 9:12]
         n = np.cross(U, V)
-        scale = np.dot(pos[0] - s, n) / np.dot(d - s, n)
+        scale = np.dot(pos - s, n) / np.dot(d - s, n)
         assert abs(np.dot(U, V)) > 0.1 * np.linalg.norm(U) * np.linalg.norm(V)
-        np.testing.assert_allclose(gmd[k], [gp @ U * scale, gp @ V * scale], rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(gmd[k], [gp[k] @ U * scale, gp[k] @ V * scale],
+                                   rtol=1e-4, atol=1e-6)
     assert np.abs(gmd).min() > 1e-3
 
 

@@ -241,35 +241,45 @@ def test_forward_mode_matches_backward(variant, rng):
     assert abs(fwd) > 1e-2
 
 
-def test_detector_plane_gradient(variant, rng):
-    """means2d gradient == 3-D position gradient of that view along (e_u, e_v) times the
-    pixel size at the Gaussian's depth; and == FD of moving the Gaussian in that plane."""
+def plane_gradients(geo, y):
+    """One Gaussian's ``means2d`` gradient [view, 2] of <project_dr(geo), y> and, from each
+    view projected alone, its 3-D position gradient [view, 3]; with the Gaussian."""
     import drjit as dr
     import mitsuba as mi
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.projector import project_dr
-    geo = geometry("cone", nd=(16, 20), views=2, offsets=False)
     pos, sc = np.array([[0.15, -0.1, 0.2]]), np.array([[0.2, 0.12, 0.3]])
     q = np.array([[0.9, 0.2, -0.3, 0.1]])
     q /= np.linalg.norm(q)
-    y = rng.normal(size=(2, 16, 20))
     g = Gaussians.from_numpy(pos, sc, q, [1.5])
-    md = dr.zeros(mi.Vector2f, 2)
+    md = dr.zeros(mi.Vector2f, geo.n_views)
     dr.enable_grad(md)
     img = project_dr(g, geo, means2d=md)
     dr.backward(dr.sum(img.array * mi.Float(y.ravel().astype(np.float32))))
-    gmd = np.stack([np.asarray(c, np.float64) for c in dr.grad(md)], -1)   # [view, 2]
-    fr = geo.detector_frame()
-    du, dv = geo.dDetector[1], geo.dDetector[0]
-    for k in range(2):
+    gmd = np.stack([np.asarray(c, np.float64) for c in dr.grad(md)], -1)
+    gp = []
+    for k in range(geo.n_views):
         gk = Gaussians.from_numpy(pos, sc, q, [1.5])
         dr.enable_grad(gk.positions)
         im = project_dr(gk, geo, angles=geo.angles[k:k + 1])
         dr.backward(dr.sum(im.array * mi.Float(y[k].ravel().astype(np.float32))))
-        gp = np.array([float(c[0]) for c in dr.grad(gk.positions)])
+        gp.append([float(c[0]) for c in dr.grad(gk.positions)])
+    return gmd, np.array(gp), g
+
+
+def test_detector_plane_gradient(variant, rng):
+    """means2d gradient == 3-D position gradient of that view along (e_u, e_v) times the
+    pixel size at the Gaussian's depth; and == FD of moving the Gaussian in that plane."""
+    geo = geometry("cone", nd=(16, 20), views=2, offsets=False)
+    y = rng.normal(size=(2, 16, 20))
+    gmd, gp, g = plane_gradients(geo, y)
+    pos = as_arrays(g)[0]
+    fr = geo.detector_frame()
+    du, dv = geo.dDetector[1], geo.dDetector[0]
+    for k in range(2):
         depth = np.dot(pos[0] - fr["source"][k], -fr["normal"][k])
         scale = depth / geo.DSD
-        want = [gp @ fr["e_u"][k] * du * scale, gp @ fr["e_v"][k] * dv * scale]
+        want = [gp[k] @ fr["e_u"][k] * du * scale, gp[k] @ fr["e_v"][k] * dv * scale]
         np.testing.assert_allclose(gmd[k], want, rtol=1e-4, atol=1e-6)
         # FD with the float64 reference: move the centre by h pixels in the plane
         arr = as_arrays(g)
