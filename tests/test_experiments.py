@@ -418,7 +418,8 @@ def test_longest_runs_are_started_first(tmp_path):
 
 
 def test_repo_suites_are_valid():
-    for kind, n, det in (("cpu", 64, 96), ("cpu_full", 64, 96), ("gpu", 256, 512)):
+    for kind, n, det in (("cpu", 64, 96), ("cpu_full", 64, 96), ("cpu_128", 128, 192),
+                         ("gpu", 256, 512)):
         suite = load_suite(REPO / "experiments" / f"suite_{kind}.json")
         assert len(suite.cases) >= 8
         assert {c.category for c in suite.cases} == {"HO", "BS", "AO"}
