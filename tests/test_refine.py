@@ -170,7 +170,7 @@ def test_refine_anchor_is_the_held_out_choice(tiny_case, monkeypatch):
     assert a["rule"] == "auto" and set(a["heldout_mse"]) == {"anchored", "plain"}
     mse = a["heldout_mse"]
     assert a["anchored"] == (mse["anchored"] <= mse["plain"])
-    assert r["heldout_mse"]["refined"] == min(mse.values())
+    assert r["heldout_mse"]["minimum"] == min(mse.values())
 
     def no_anchor(*args, **kwargs):
         raise AssertionError("refine_anchor=off built anchored data")

@@ -46,7 +46,7 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 #: Fields that act only after training (on the returned state): a resume may change them,
 #: since no checkpointed state depends on them, but a finished run is stale for them.
 AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
-                  "refine_anchor", "fit_iterations", "voxel_average")
+                  "refine_anchor", "refine_fall", "fit_iterations", "voxel_average")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
 # without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
@@ -236,6 +236,10 @@ class Protocol:
                                    # own projections, "off" the measured ones, "auto" the
                                    # one with the lower held-out residual (why:
                                    # docs/benchmarks.md, "The refinement's anchor")
+    refine_fall: float = 1.0       # the refinement stops where the held-out residual has
+                                   # made this share of its fall from the start to its
+                                   # minimum (1: at the minimum; why: docs/benchmarks.md,
+                                   # "The refinement's weight and length")
     refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
                                    # the Gaussians, vol_pred is their voxelisation;
                                    # "voxels": vol_pred is the refined grid
@@ -362,6 +366,8 @@ def _validate(c: dict) -> None:
         raise ConfigError(f"refine_lam must be > 0, got {c['refine_lam']}")
     if c["refine_max_iterations"] < 1:
         raise ConfigError("refine_max_iterations must be >= 1")
+    if not 0.0 < c["refine_fall"] <= 1.0:
+        raise ConfigError(f"refine_fall must be a share in (0, 1], got {c['refine_fall']}")
     if not c["voxel_average"] <= 1.0:
         raise ConfigError(f"voxel_average must be a fraction in [0, 1], got "
                           f"{c['voxel_average']}")
