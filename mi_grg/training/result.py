@@ -158,7 +158,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     best_mse = min(m for _, m in curve)
     # the residual's tail flattens while the grid takes on voxel-scale detail that no
     # view checks: stopping once most of the fall is made avoids it
-    target = curve[0][1] - float(cfg.refine_fall) * (curve[0][1] - best_mse)
+    # (never below the minimum: rounding in the difference must not skip it)
+    target = max(curve[0][1] - float(cfg.refine_fall) * (curve[0][1] - best_mse), best_mse)
     length, chosen = next((it, m) for it, m in curve if m <= target)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
