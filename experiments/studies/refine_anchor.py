@@ -163,14 +163,20 @@ def markdown(records: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def state_arguments(doc: str, out_name: str) -> argparse.ArgumentParser:
+    """The options of a study on the trained states (cases, size, data, states, output)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--cases", nargs="+", default=["bone", "needles", "shepp"],
                     choices=list(CASES))
     ap.add_argument("--n", type=int, default=64)
     ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
     ap.add_argument("--states", type=Path, default=Path("/tmp/refine_anchor_states"))
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "refine_anchor")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / out_name)
+    return ap
+
+
+def main():
+    ap = state_arguments(__doc__, "refine_anchor")
     ap.add_argument("--finish", action="store_true",
                     help="also make gr's result with the package's defaults (the export)")
     ap.add_argument("--finish-only", action="store_true")

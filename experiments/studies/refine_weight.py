@@ -28,15 +28,13 @@ package's defaults but ``refine_fall=F`` and records its export's 3-D PSNR besid
 default's (``refine_anchor.py --finish``'s record, same state). Writes
 docs/bench/refine_weight.json (merged per case) and .md.
 """
-import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
-from field_result import CASES, ROOT, save_record
-from refine_anchor import trained
+from field_result import save_record
+from refine_anchor import state_arguments, trained
 
 LAMS = (0.001, 0.003, 0.01, 0.03)
 FALLS = (0.99, 0.95, 0.9, 0.8)
@@ -159,13 +157,7 @@ def markdown(records: dict) -> str:
 
 def main():
     from mi_grg.training.config import make_config
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", nargs="+", default=["bone", "needles", "shepp"],
-                    choices=list(CASES))
-    ap.add_argument("--n", type=int, default=64)
-    ap.add_argument("--data", type=Path, default=Path("/tmp/field_result_data"))
-    ap.add_argument("--states", type=Path, default=Path("/tmp/refine_anchor_states"))
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "refine_weight")
+    ap = state_arguments(__doc__, "refine_weight")
     ap.add_argument("--replay-only", action="store_true",
                     help="replay the rules on the recorded curves, rewrite .json / .md")
     ap.add_argument("--finish", type=float, default=None, metavar="F",
