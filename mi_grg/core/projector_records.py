@@ -64,7 +64,7 @@ class DetectorConstants:
         """Take a per-view scan's detector values from ``det``, a float32 array holding
         (h, h^2, a_u, a_v, du, dv, sk) (``step.view_arrays``): width-1 gathers, so that a
         recorded step reads them as inputs."""
-        vals = [dr.gather(mi.Float, det, mi.UInt32(k)) for k in range(7)]
+        vals = [dr.gather(mi.Float, det, mi.UInt32(k)) for k in range(7 if self.skewed else 6)]
         self.h, self.h2, self.a_u, self.a_v, self.du, self.dv = vals[:6]
         if self.skewed:
             self.sk = vals[6]
