@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -190,14 +191,15 @@ def speed(n: int, reps: int) -> list:
 
 
 def markdown(res: dict) -> str:
-    q = {(r["scan"], r["method"]): r["psnr_3d"] for r in res["quality"]}
-    methods = sorted({r["method"] for r in res["quality"]}, key=["fdk", "pdhg", "gr"].index)
-    out = [f"# Per-view geometry ({res['n']}^3, 25 noisy views, gr {res['gr_iterations']} "
+    q = {(r["scan"], r["method"]): r["psnr_3d"] for r in res.get("quality", [])}
+    methods = sorted({m for _, m in q}, key=["fdk", "pdhg", "gr"].index)
+    out = [f"# Per-view geometry ({res['n']}^3, 25 noisy views, gr {res.get('gr_iterations')} "
            "iterations)", "", "Written by `bench/per_view_geometry.py`; "
-           f"{res['machine']}.", "", "## Quality (3-D PSNR, dB; in brackets: minus the "
-           "circular scan)", "", "| scan | " + " | ".join(methods) + " |",
-           "|---|" + "---|" * len(methods)]
-    for scan in SCANS:
+           f"{res['machine']}."]
+    if q:
+        out += ["", "## Quality (3-D PSNR, dB; in brackets: minus the circular scan)", "",
+                "| scan | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+    for scan in SCANS if q else ():
         cells = []
         for m in methods:
             v, c = q.get((scan, m)), q.get(("circular", m))
@@ -254,7 +256,7 @@ def main(argv=None) -> int:
         if res.get("n") != args.n:
             ap.error(f"--n {args.n} differs from the existing {out}.json's n = {res.get('n')}")
     res.update({"n": args.n, "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}, "
-                f"{__import__('os').cpu_count()} cores (shared)"})
+                f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at the start"})
     if "speed" in args.parts:
         res.update(speed_n=args.speed_n, speed=speed(args.speed_n, args.reps))
     if "quality" in args.parts:
