@@ -17,7 +17,8 @@ the Shepp-Logan phantom, scanned four ways:
 
 Methods fdk, pdhg and gr (gr with ``--gr-iterations``, small so that it runs on a loaded
 CPU); FDK's half-fan loss by view count, with and without noise; FDK on a short scan (180
-degrees plus the fan angle) with and without Parker's weights. Speed: the Joseph
+degrees plus the fan angle) with and without Parker's weights; FDK's full-circle weight
+per view (2 pi / n) against each view's own angular step (RTK's). Speed: the Joseph
 projector (A and A^T) and the Gaussian projector (25 views) on the circular scan, the same
 scan given as vectors, the wobbling scan and the skewed one (medians of repeats).
 
@@ -25,6 +26,7 @@ scan given as vectors, the wobbling scan and the skewed one (medians of repeats)
     python bench/per_view_geometry.py --n 64 --gr-iterations 1500
     python bench/per_view_geometry.py --parts short_scan   # only that table, merged
     python bench/per_view_geometry.py --parts quality --scans skewed skewed_ignored
+    python bench/per_view_geometry.py --parts view_steps   # FDK: 2 pi / n or each step
 
 Writes docs/bench/per_view_geometry.json and .md.
 """
@@ -42,7 +44,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SCANS = ("circular", "half_fan", "wobbling", "wobbling_ignored", "skewed", "skewed_ignored")
 SKEW_DEG = 5.0
-PARTS = ("speed", "quality", "fdk_gap", "short_scan")
+PARTS = ("speed", "quality", "fdk_gap", "short_scan", "view_steps")
 
 
 def cases(n: int) -> dict:
@@ -147,6 +149,61 @@ def short_scan(n: int, views=(25, 100)) -> list:
     return rows
 
 
+def view_steps(n: int) -> list:
+    """FDK's full-circle weight per view, 2 pi / n (ours) against each view's own angular
+    step (RTK's), on 25-view circles with views left out (as a held-out split leaves them)
+    and on circles whose per-view azimuths deviate from the nominal ones; noisy."""
+    import numpy as np
+    import mi_grg
+    from mi_grg.core import fdk_geometry
+    from mi_grg.core.view_vectors import circular_vectors
+    from mi_grg.data.noise import NoiseModel
+    from mi_grg.data.simulate import default_geometry, default_test_angles, simulate_case
+    parker = fdk_geometry.short_scan_weights
+
+    def with_view_steps(g):
+        """Each view's step (half the arc to its two neighbours) over 2 pi / n, [view, nu];
+        a short scan keeps Parker's weights."""
+        w = parker(g)
+        if w is not None:
+            return w
+        s, order, gaps = fdk_geometry._gaps(fdk_geometry.view_angles(g))
+        step = np.empty(s.size)
+        step[order] = 0.5 * (gaps + np.roll(gaps, 1))
+        return np.repeat((step * s.size / (2 * np.pi))[:, None], g.nDetector[1], 1)
+
+    geo = default_geometry(n=n, det=int(1.5 * n), views=25)
+    scans = []
+    for drop in ([0], [0, 12], [0, 8, 16, 24], [0, 5, 10, 15, 20]):
+        keep = [i for i in range(25) if i not in drop]
+        scans.append((f"circle, views {drop} left out", geo.with_angles(geo.angles[keep])))
+    test = default_test_angles(5)
+    both = geo.with_angles(np.concatenate([geo.angles, test]))
+    for jitter in (1.5, 4.0):
+        for seed in range(3):
+            a = both.angles + np.radians(np.concatenate([
+                np.random.default_rng(seed).uniform(-jitter, jitter, 25), np.zeros(test.size)]))
+            rows = np.stack(np.broadcast_arrays(*circular_vectors(
+                np.cos(a), np.sin(a), geo.DSD, geo.DSO, geo.dDetector, geo.offDetector)), -1)
+            scans.append((f"azimuths +-{jitter} deg, seed {seed}",
+                          both.replace(vectors=rows).with_angles(geo.angles)))
+    out = []
+    for name, g in scans:
+        case = simulate_case("shepp", g, test, NoiseModel(), seed=0)
+        row = {"scan": name, "views": g.n_views,
+               "two_pi_over_n": mi_grg.reconstruct(case, "fdk")[1]["psnr_3d"]}
+        fdk_geometry.short_scan_weights = with_view_steps
+        try:
+            row["view_steps"] = mi_grg.reconstruct(case, "fdk")[1]["psnr_3d"]
+        finally:
+            fdk_geometry.short_scan_weights = parker
+        out.append(row)
+        print(f"fdk {name}: view steps {row['view_steps'] - row['two_pi_over_n']:+.3f} dB",
+              flush=True)
+    return out
+
+
+
 def _median_time(fn, reps: int) -> float:
     import drjit as dr
     fn()
@@ -223,14 +280,22 @@ def markdown(res: dict) -> str:
             out.append(f"| {r['views']} | {r['noise']} | {r['circular']:.2f} | "
                        f"{r['short_parker']:.2f} ({r['short_parker'] - r['circular']:+.2f}) | "
                        f"{r['short_unweighted']:.2f} ({r['short_unweighted'] - r['circular']:+.2f}) |")
-    out += ["", "## Speed (median seconds)", "", "| scan | Joseph A | Joseph A^T | "
-            "Gaussians, 25 views | Gaussians, 1 view |", "|---|---|---|---|---|"]
-    base = res["speed"][0]
-    for r in res["speed"]:
-        cells = [f"{r[k]:.4f} ({r[k] / base[k]:.2f}x)" for k in
-                 ("joseph_forward_s", "joseph_adjoint_s", "gaussian_25_views_s",
-                  "gaussian_1_view_s")]
-        out.append(f"| {r['scan']} | " + " | ".join(cells) + " |")
+    if res.get("view_steps"):
+        out += ["", f"## FDK's weight per view on a full circle ({res['n']}^3, Shepp-Logan, "
+                "noisy; 3-D PSNR dB)", "", "| scan | views | 2 pi / n (ours) | each view's "
+                "step (RTK's) |", "|---|---|---|---|"]
+        for r in res["view_steps"]:
+            out.append(f"| {r['scan']} | {r['views']} | {r['two_pi_over_n']:.2f} | "
+                       f"{r['view_steps']:.2f} ({r['view_steps'] - r['two_pi_over_n']:+.2f}) |")
+    if res.get("speed"):
+        out += ["", "## Speed (median seconds)", "", "| scan | Joseph A | Joseph A^T | "
+                "Gaussians, 25 views | Gaussians, 1 view |", "|---|---|---|---|---|"]
+        base = res["speed"][0]
+        for r in res["speed"]:
+            cells = [f"{r[k]:.4f} ({r[k] / base[k]:.2f}x)" for k in
+                     ("joseph_forward_s", "joseph_adjoint_s", "gaussian_25_views_s",
+                      "gaussian_1_view_s")]
+            out.append(f"| {r['scan']} | " + " | ".join(cells) + " |")
     return "\n".join(out) + "\n"
 
 
@@ -271,6 +336,8 @@ def main(argv=None) -> int:
         res["fdk_gap"] = fdk_gap(args.n)
     if "short_scan" in args.parts:
         res["short_scan"] = short_scan(args.n)
+    if "view_steps" in args.parts:
+        res["view_steps"] = view_steps(args.n)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(res, indent=2))
     out.with_suffix(".md").write_text(markdown(res))

@@ -10,6 +10,7 @@ import pytest
 from mi_grg.core.geometry import Geometry, circular_angles
 from mi_grg.core import joseph as vp
 from mi_grg.core.joseph import back_project, forward_project, forward_project_dr
+from mi_grg.core.view_vectors import circular_vectors
 
 # itk's SWIG wrappers emit hundreds of these on import
 pytestmark = pytest.mark.filterwarnings("ignore:builtin type:DeprecationWarning")
@@ -76,9 +77,22 @@ def rtk_geometry(rtk, geo, angles=None):
     at DSO (cos a, sin a, 0) with u along (-sin a, cos a, 0), v along -z. Relabelling our
     world point (x, y, z) as RTK's (X, Y, Z) = (y, -z, x) maps one onto the other with
     g = degrees(a) and the same u, v directions (the relabelling is a reflection, applied
-    to volume and detector alike, so every line integral is preserved)."""
-    a = geo.angles if angles is None else angles
+    to volume and detector alike, so every line integral is preserved). A per-view scan
+    whose views differ in angle and distances only maps view by view."""
     g = rtk.ThreeDCircularProjectionGeometry.New()
+    if geo.per_view and angles is None:
+        # per-view rows of the in-plane kind only (each view its own angle, SID and SDD)
+        vec = geo.view_vectors()
+        a = np.arctan2(vec[:, 1], vec[:, 0])
+        sid = np.hypot(vec[:, 0], vec[:, 1])
+        sdd = sid + np.hypot(vec[:, 3], vec[:, 4])
+        want = np.stack(np.broadcast_arrays(*circular_vectors(
+            np.cos(a), np.sin(a), sdd, sid, geo.dDetector, (0.0, 0.0))), -1)
+        assert np.allclose(vec, want, atol=1e-9), "rows beyond RTK's angle, SID and SDD"
+        for ang, o, d in zip(a, sid, sdd):
+            g.AddProjection(float(o), float(d), float(np.degrees(ang)), 0.0, 0.0)
+        return g
+    a = geo.angles if angles is None else angles
     for ang in np.asarray(a, np.float64):
         g.AddProjection(geo.DSO, geo.DSD, float(np.degrees(ang)), 0.0, 0.0)
     return g

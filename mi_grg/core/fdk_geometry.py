@@ -22,6 +22,10 @@ alpha)))`` to ``pi + 2 delta``, so that the two rays of a line add up to 2 again
 then counts with its own angular step (half the arc to its two neighbours, as RTK's
 angular gaps) instead of the full circle's 2 pi / n. Parker's weights need ``delta`` of at
 least half the fan angle (pi plus the fan angle of data); ``caveats`` says when it is less.
+A per-view scan's views take their own gantry angle (the source's azimuth), distance and
+principal point here, as RTK's do. A full circle keeps 2 pi / n per view where RTK takes
+each view's step: the steps measured no better on circles with views left out
+(docs/per_view_geometry.md).
 
 Per-view frames (RTK's FDK for its 3-D circular geometry does the same): each view's
 source-to-detector distance ``DSD_i`` (to the detector plane, along its normal), its
@@ -36,7 +40,7 @@ import numpy as np
 from mi_grg.core.geometry import Geometry
 
 __all__ = ["offset_weights", "pad_offset_detector", "short_scan", "short_scan_weights",
-           "view_fdk_frames", "caveats"]
+           "view_angles", "view_fdk_frames", "caveats"]
 
 # RTK's rule: shifts below this fraction of the width need no redundancy weights
 MIN_SHIFT = 0.1
@@ -77,6 +81,35 @@ def _columns(geo: Geometry) -> np.ndarray:
     return (np.arange(nu) + 0.5 - nu / 2) * geo.dDetector[1] + geo.offDetector[1]
 
 
+def view_angles(geo: Geometry) -> np.ndarray:
+    """Each view's gantry angle (radians) [view], float64: a per-view cone-beam scan's
+    from its source's azimuth (as RTK takes each view's own gantry angle), otherwise the
+    nominal ``geo.angles``."""
+    if not (geo.per_view and geo.mode == "cone"):
+        return np.asarray(geo.angles, np.float64)
+    src = geo.view_vectors()[:, 0:3]
+    return np.arctan2(src[:, 1], src[:, 0])
+
+
+def _view_columns(geo: Geometry, angles) -> np.ndarray:
+    """Each column's centre along the orbit's tangent (-sin a, cos a, 0), from the view's
+    principal point [view, nu] (float64); the nominal ``_columns`` on a circular scan."""
+    if not geo.per_view:
+        return _columns(geo)[None, :]
+    f = view_fdk_frames(geo)
+    vec = f["vectors"]
+    nu = geo.nDetector[1]
+    tangent = np.stack([-np.sin(angles), np.cos(angles), np.zeros_like(angles)], 1)
+    j = np.arange(nu) + 0.5 - nu / 2
+    first = np.sum((vec[:, 3:6] - f["foot"]) * tangent, 1)
+    return first[:, None] + j[None, :] * np.sum(vec[:, 6:9] * tangent, 1)[:, None]
+
+
+def _view_dsd(geo: Geometry):
+    """Each view's source-to-detector distance [view, 1], or the nominal DSD."""
+    return view_fdk_frames(geo)["dsd"][:, None] if geo.per_view else geo.DSD
+
+
 def _gaps(angles):
     """(angles mod 2 pi sorted, the order, each sorted angle's gap to the next, wrapping)."""
     a = np.mod(np.asarray(angles, np.float64), 2 * np.pi)
@@ -97,7 +130,7 @@ def short_scan(geo: Geometry):
     circle (no gap counts: ``GAP_STEPS``, ``GAP_DEG``) or a parallel-beam scan."""
     if geo.mode != "cone" or geo.n_views < 2:
         return None
-    s, _, gaps = _gaps(geo.angles)
+    s, _, gaps = _gaps(view_angles(geo))
     k = int(np.argmax(gaps))
     if not _is_gap(gaps[k], s.size):
         return None
@@ -116,14 +149,15 @@ def _half_fan_angle(geo: Geometry) -> float:
 
 def short_scan_weights(geo: Geometry):
     """Parker's weights times each view's angular step over the full circle's, float64
-    [view, nu] (module docstring), or None for a full circle. The angles, distances and
-    detector offset are the nominal circle's (a per-view scan's small deviations aside)."""
+    [view, nu] (module docstring), or None for a full circle. A per-view scan's views
+    take their own gantry angle (``view_angles``), distance and principal point."""
     scan = short_scan(geo)
     if scan is None:
         return None
     first, delta = scan
-    alpha = np.arctan(-_columns(geo) / geo.DSD)[None, :]     # atan(-l / DSO), l at the axis
-    beta = np.mod(np.asarray(geo.angles, np.float64) - first, 2 * np.pi)[:, None]
+    angles = view_angles(geo)
+    alpha = np.arctan(-_view_columns(geo, angles) / _view_dsd(geo))   # atan(-l / DSO_i)
+    beta = np.mod(angles - first, 2 * np.pi)[:, None]
     tiny = 1e-12                                # delta -/+ alpha <= 0: no data to weight
     rise = 2 * np.sin(np.pi * beta / (4 * np.maximum(delta - alpha, tiny))) ** 2
     fall = 2 * np.sin(np.pi * (np.pi + 2 * delta - beta)
@@ -132,7 +166,7 @@ def short_scan_weights(geo: Geometry):
                  np.where(beta <= np.pi - 2 * alpha, 2.0,
                           np.where(beta <= np.pi + 2 * delta, fall, 0.0)))
     # each view's angular step: half the arc to its two neighbours (the circle's 2 pi / n)
-    s, order, gaps = _gaps(geo.angles)
+    s, order, gaps = _gaps(angles)
     step = np.empty(s.size)
     step[order] = 0.5 * (gaps + np.roll(gaps, 1))
     return w * (step * s.size / (2 * np.pi))[:, None]
@@ -206,7 +240,7 @@ def caveats(geo: Geometry) -> list:
     if inf > 0 or sup < 0:
         out.append("the detector does not cover the principal ray (offset beyond half its "
                    "width)")
-    gap = float(_gaps(geo.angles)[2].max())
+    gap = float(_gaps(view_angles(geo))[2].max())
     offset = offset_weights(geo) is not None
     short = short_scan(geo)
     if short is not None and offset:
