@@ -13,8 +13,9 @@ import mitsuba as mi
 
 from mi_grg.core.geometry import Geometry, circular_angles
 from mi_grg.core.joseph import JosephProjector, forward_project
-from mi_grg.classical.pdhg import (PDHG, divergence, gradient, operator_norm, pdhg,
-                                   reconstruct_pdhg, tv_iso)
+from mi_grg.classical.pdhg import (FIXED_LAM, PDHG, divergence, gradient, operator_norm,
+                                   pdhg, reconstruct_pdhg, tv_iso)
+from mi_grg.evaluation.metrics import psnr_3d
 
 
 def tiny_geometry(n=6, views=10):
@@ -96,8 +97,20 @@ def test_contract_and_bad_options(rng):
     x_true = np.zeros(geo.nVoxel, np.float32)
     x_true[2:6, 2:6, 3:5] = 1.0
     case = Case(geometry=geo, train=forward_project(x_true, geo))
-    vol = reconstruct_pdhg(case, stop="none", n_iter=5, progress=False)
+    vol, info = reconstruct_pdhg(case, stop="none", n_iter=5, progress=False)
     assert vol.shape == geo.nVoxel and vol.min() >= 0
+    assert info == {"protocol": "fixed", "iterations": 5, "lam": FIXED_LAM}
+    # with a ground truth the fixed count's 3-D PSNR is logged along the way (the oracle)
+    scored = Case(geometry=geo, train=case.train, vol_gt=x_true)
+    vol2, info = reconstruct_pdhg(scored, stop="none", n_iter=12, eval_every=5,
+                                  progress=False)
+    curve = info["oracle"]["curve"]
+    assert [s for s, _ in curve] == [5, 10, 12]
+    assert curve[-1][1] == pytest.approx(psnr_3d(vol2, x_true), abs=1e-9)
+    assert info["oracle"]["psnr_3d_best"] == max(p for _, p in curve)
+    assert info["oracle"]["psnr_3d_chosen"] == curve[-1][1]
+    np.testing.assert_allclose(vol2, reconstruct_pdhg(case, stop="none", n_iter=12,
+                                                         progress=False)[0], atol=1e-5)
     vol, info = reconstruct_pdhg(case, n_iter=20, eval_every=2, lam=[0.0, 0.01],
                                  progress=False)
     assert info["held_out_views"] == [2, 6] and info["final_views"] == list(range(9))

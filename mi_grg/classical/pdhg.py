@@ -28,6 +28,7 @@ the same problem in mm or in R2-Gaussian's normalised units and for any density 
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -39,7 +40,8 @@ from mi_grg.core.joseph import JosephProjector
 from mi_grg.classical.iterative import (_check_inputs, _fixed, _initial, _one, _progress,
                                         _to_numpy, weight_grid)
 from mi_grg.core.joseph import forward_project
-from mi_grg.protocol.heldout import run_heldout
+from mi_grg.evaluation.metrics import psnr_3d
+from mi_grg.protocol.heldout import oracle_info, run_heldout
 from mi_grg.protocol.search import RULES, LogGrid
 
 #: ||D||^2 <= 4 per axis for forward differences, 12 in 3-D.
@@ -319,8 +321,9 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
     ``run_heldout``'s ``start``), widen (under "heldout": the cap n_iter is a base that
     doubles while the held-out PSNR still gains, mi_grg.protocol.widening; None =
     WIDEN_CAP),
-    progress. Returns float32 [x, y, z] (and, under "heldout", what
-    was decided); unknown options raise.
+    progress. Returns (float32 [x, y, z], info): under "heldout" what was decided, under
+    "none" the count and lam and, with a ground truth, the research log's 3-D PSNR every
+    ``eval_every`` iterations (``oracle``: it decides nothing); unknown options raise.
     """
     gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
     if lam_rule is not None and lam_rule not in RULES:
@@ -340,8 +343,23 @@ def reconstruct_pdhg(case, *, stop: str = "heldout", n_iter=None, lam=None, gamm
             raise ValueError("pdhg: start (a refinement's start volumes), lam_rule and widen "
                              "need stop='heldout'")
         lm = _one(FIXED_LAM if lam is None else lam, "lam")
-        return run(case.train, case.geometry, n_iter=FIXED_ITERATIONS if n_iter is None
-                   else n_iter, lam=lm, progress=progress)
+        n = FIXED_ITERATIONS if n_iter is None else int(n_iter)
+        info = {"protocol": "fixed", "iterations": n, "lam": lm}
+        if case.vol_gt is None:
+            return run(case.train, case.geometry, n_iter=n, lam=lm, progress=progress), info
+        # The research log (decides nothing): 3-D PSNR every eval_every iterations, so a
+        # fixed count's result stands beside its best iteration; scoring time excluded.
+        curve, spent = [], [0.0]
+
+        def score(it, vol):
+            if (it + 1) % eval_every == 0 or it + 1 == n:
+                t = time.perf_counter()
+                curve.append((it + 1, float(psnr_3d(vol, case.vol_gt))))
+                spent[0] += time.perf_counter() - t
+
+        vol = run(case.train, case.geometry, n_iter=n, lam=lm, progress=progress,
+                  callback=score)
+        return vol, {**info, "oracle": oracle_info(curve, n), "oracle_seconds": spent[0]}
     grid = weight_grid(lam, "lam", LAM_GRID, DEFAULT_LAM_RULE if lam_rule is None else lam_rule)
     if lam_rule is not None and not isinstance(grid, LogGrid):
         raise ValueError(f"pdhg: lam_rule={lam_rule!r} chooses among a grid of lam; lam="

@@ -286,7 +286,9 @@ def _final_run(case, run, pick: dict, max_sweeps: int, eval_every: int, scoring:
     return kept["vol"], t_kept[0], total, curve
 
 
-def _oracle_info(curve: list, k: int) -> dict:
+def oracle_info(curve: list, k: int) -> dict:
+    """The oracle's record of a run scored at (sweep, 3-D PSNR) points ``curve``, whose
+    result is sweep ``k``: its best sweep (the earliest of equals) and the gap to it."""
     at = dict(curve)
     best_sweep, best = max(curve, key=lambda c: (c[1], -c[0]))
     return {"label": ORACLE_LABEL, "best_sweep": best_sweep, "psnr_3d_best": best,
@@ -424,5 +426,5 @@ def run_heldout(case, run, grid, *, project, max_sweeps: int, name: str,
         info["cap"] = _cap_info(widening, pick, name)
     info.update(_noise_info(candidates, noise, d))
     if scoring and curve:
-        info["oracle"] = _oracle_info(curve, k)
+        info["oracle"] = oracle_info(curve, k)
     return vol, info
