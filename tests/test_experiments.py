@@ -319,6 +319,7 @@ def test_fair_margin_oracle_and_anytime_tables(tmp_path):
     the fixed ones); the oracle is shown beside them; the any-time table takes the best
     point within each budget."""
     from mi_grg.lab.report import DASH, anytime_table, classical_margin, oracle_rows
+    from mi_grg.lab.report_tables import cold_peak_margin
     out = tmp_path / "res"
     held = {"protocol": "heldout", "chosen": {"setting": {"alpha": 0.02}, "sweeps": 7},
             "oracle": {"psnr_3d_best": 29.5, "best_sweep": 5, "gap_db": 0.5},
@@ -354,6 +355,17 @@ def test_fair_margin_oracle_and_anytime_tables(tmp_path):
     assert by[("a", "asd-pocs")] == [DASH, "29.00", "29.00", "29.00"]
     assert by[("a", "asd-pocs-fixed")] == [DASH, "27.00", "27.00", "27.00"]
     assert by[("a", "gr")] == [DASH, DASH, DASH, "31.00"]
+    # cold PDHG's logged curve: its best iteration (an oracle bound) beside its result
+    cold = {"protocol": "fixed", "iterations": 300, "lam": 0.003,
+            "oracle": {"psnr_3d_best": 30.75, "best_sweep": 120, "gap_db": 0.5}}
+    _fake_run(out, "table1", "a", "pdhg-cold", "HO", "pdhg", psnr_3d=30.25, ssim_3d=0.8,
+              seconds=20.0, method_info=cold)
+    rows = load_runs(out)["table1"]
+    assert [(c, round(d, 6), k) for c, d, k in cold_peak_margin(rows)] == [("a", 0.25, 120)]
+    assert ["a", "pdhg-cold", "30.25", "lam=0.003, 300 iterations (fixed)", "30.75 (120)",
+            "0.50"] in oracle_rows(rows)[1]
+    assert "at its best iteration" in summary_lines(out)[3] and "a +0.25 at 120" in \
+        summary_lines(out)[3]
     _fake_run(out, "speed", "a", "fdk", "HO", "fdk", psnr_3d=20.0, ssim_3d=0.5)
     md = write_report(out, tmp_path / "r.md").read_text()
     assert "oracle" in md and "29.50 (5)" in md
