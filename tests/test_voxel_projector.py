@@ -85,9 +85,10 @@ def rtk_geometry(rtk, geo, angles=None):
         vec = geo.view_vectors()
         a = np.arctan2(vec[:, 1], vec[:, 0])
         sid = np.hypot(vec[:, 0], vec[:, 1])
-        sdd = sid + np.hypot(vec[:, 3], vec[:, 4])
+        back = np.hypot(vec[:, 3], vec[:, 4])       # to the detector centre (offset)
+        sdd = sid + np.sqrt(back ** 2 - geo.offDetector[1] ** 2)
         want = np.stack(np.broadcast_arrays(*circular_vectors(
-            np.cos(a), np.sin(a), sdd, sid, geo.dDetector, (0.0, 0.0))), -1)
+            np.cos(a), np.sin(a), sdd, sid, geo.dDetector, geo.offDetector)), -1)
         assert np.allclose(vec, want, atol=1e-9), "rows beyond RTK's angle, SID and SDD"
         for ang, o, d in zip(a, sid, sdd):
             g.AddProjection(float(o), float(d), float(np.degrees(ang)), 0.0, 0.0)

@@ -9,7 +9,9 @@ on the short side, 2 beyond ``theta`` on the long side and
 ``1 + sin(pi/2 atan(l / DSD) / atan(theta / DSD))`` between, so that opposite rays of a
 full circle add up to 2 (FDK's full-scan factor 1/2 stays). The short side is then
 zero-padded by one detector width so that the ramp-filtered values there are
-back-projected too. A shift below a tenth of the width is not weighted (as RTK).
+back-projected too. A shift below a tenth of the width is not weighted (as RTK). A
+per-view scan weighs each view with its own distances and principal point, ``theta`` the
+narrowest overlap of its views at the axis (as RTK).
 
 Short scan (Parker 1982, in the form of RTK's ParkerShortScanImageFilter): cone-beam views
 over less than a full circle, the largest gap between neighbouring views being a gap (see
@@ -61,16 +63,26 @@ def _corners(geo: Geometry):
 
 
 def offset_weights(geo: Geometry):
-    """The redundancy weights of the columns [nu] (float64) or None (centred enough)."""
+    """The redundancy weights of the columns, float64 [1, nu] (a circular scan) or [view,
+    nu] (a per-view cone-beam scan: each view's own distances and principal point, the
+    overlap the narrowest of the views', as RTK's), or None (centred enough)."""
     inf, sup = _corners(geo)
     if abs(inf + sup) < MIN_SHIFT * abs(sup - inf):
         return None
     if inf > 0 or sup < 0:
         return None      # the principal ray misses the detector: ``caveats`` says so
-    l = _columns(geo)
-    theta = min(-inf, sup)
-    sdd = geo.DSD if geo.mode == "cone" else None
-    ramp = (np.arctan(l / sdd) / np.arctan(theta / sdd)) if sdd else l / theta
+    if geo.per_view and geo.mode == "cone":
+        l = _view_columns(geo, view_angles(geo))              # on each view's detector
+        f = view_fdk_frames(geo)
+        dsd, dso = f["dsd"][:, None], f["dso"][:, None]
+        iso = l * dso / dsd                                   # the same, at the axis
+        theta = min(-float(iso.min(1).max()), float(iso.max(1).min()))
+        ramp = np.arctan(l / dsd) / np.arctan(theta / dso)
+    else:
+        l = _columns(geo)[None, :]
+        theta = min(-inf, sup)
+        sdd = geo.DSD if geo.mode == "cone" else None
+        ramp = (np.arctan(l / sdd) / np.arctan(theta / sdd)) if sdd else l / theta
     w = 1.0 + np.sin(0.5 * np.pi * np.clip(ramp, -1.0, 1.0))
     return w if sup + inf > 0 else 2.0 - w
 
@@ -182,7 +194,7 @@ def pad_offset_detector(proj: np.ndarray, geo: Geometry):
     long_plus = sum(_corners(geo)) > 0
     out = np.zeros((proj.shape[0], nv, 2 * nu), np.float32)
     cols = slice(nu, 2 * nu) if long_plus else slice(0, nu)
-    out[:, :, cols] = proj * w[None, None, :].astype(np.float32)
+    out[:, :, cols] = proj * w[:, None, :].astype(np.float32)
     du = geo.dDetector[1]
     shift = -nu / 2 * du if long_plus else nu / 2 * du    # the padded detector's centre
     padded = geo.replace(nDetector=(nv, 2 * nu), sDetector=(geo.sDetector[0], 2 * nu * du),
