@@ -167,10 +167,8 @@ def view_steps(n: int) -> list:
         w = parker(g)
         if w is not None:
             return w
-        s, order, gaps = fdk_geometry._gaps(fdk_geometry.view_angles(g))
-        step = np.empty(s.size)
-        step[order] = 0.5 * (gaps + np.roll(gaps, 1))
-        return np.repeat((step * s.size / (2 * np.pi))[:, None], g.nDetector[1], 1)
+        steps = fdk_geometry.view_steps(fdk_geometry.view_angles(g))
+        return np.repeat(steps[:, None], g.nDetector[1], 1)
 
     geo = default_geometry(n=n, det=int(1.5 * n), views=25)
     scans = []

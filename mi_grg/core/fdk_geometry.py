@@ -42,7 +42,7 @@ import numpy as np
 from mi_grg.core.geometry import Geometry
 
 __all__ = ["offset_weights", "pad_offset_detector", "short_scan", "short_scan_weights",
-           "view_angles", "view_fdk_frames", "caveats"]
+           "view_angles", "view_fdk_frames", "view_steps", "caveats"]
 
 # RTK's rule: shifts below this fraction of the width need no redundancy weights
 MIN_SHIFT = 0.1
@@ -72,9 +72,7 @@ def offset_weights(geo: Geometry):
     if inf > 0 or sup < 0:
         return None      # the principal ray misses the detector: ``caveats`` says so
     if geo.per_view and geo.mode == "cone":
-        l = _view_columns(geo, view_angles(geo))              # on each view's detector
-        f = view_fdk_frames(geo)
-        dsd, dso = f["dsd"][:, None], f["dso"][:, None]
+        l, dsd, dso = _view_columns(geo, view_angles(geo))    # on each view's detector
         iso = l * dso / dsd                                   # the same, at the axis
         theta = min(-float(iso.min(1).max()), float(iso.max(1).min()))
         ramp = np.arctan(l / dsd) / np.arctan(theta / dso)
@@ -103,23 +101,29 @@ def view_angles(geo: Geometry) -> np.ndarray:
     return np.arctan2(src[:, 1], src[:, 0])
 
 
-def _view_columns(geo: Geometry, angles) -> np.ndarray:
-    """Each column's centre along the orbit's tangent (-sin a, cos a, 0), from the view's
-    principal point [view, nu] (float64); the nominal ``_columns`` on a circular scan."""
+def _view_columns(geo: Geometry, angles):
+    """(each column's centre along the orbit's tangent (-sin a, cos a, 0) from the view's
+    principal point [view, nu], DSD [view, 1], DSO [view, 1]), float64; the nominal
+    ``_columns`` [1, nu], DSD and DSO on a circular scan."""
     if not geo.per_view:
-        return _columns(geo)[None, :]
+        return _columns(geo)[None, :], geo.DSD, geo.DSO
     f = view_fdk_frames(geo)
     vec = f["vectors"]
     nu = geo.nDetector[1]
     tangent = np.stack([-np.sin(angles), np.cos(angles), np.zeros_like(angles)], 1)
     j = np.arange(nu) + 0.5 - nu / 2
     first = np.sum((vec[:, 3:6] - f["foot"]) * tangent, 1)
-    return first[:, None] + j[None, :] * np.sum(vec[:, 6:9] * tangent, 1)[:, None]
+    l = first[:, None] + j[None, :] * np.sum(vec[:, 6:9] * tangent, 1)[:, None]
+    return l, f["dsd"][:, None], f["dso"][:, None]
 
 
-def _view_dsd(geo: Geometry):
-    """Each view's source-to-detector distance [view, 1], or the nominal DSD."""
-    return view_fdk_frames(geo)["dsd"][:, None] if geo.per_view else geo.DSD
+def view_steps(angles) -> np.ndarray:
+    """Each view's angular step (half the arc to its two neighbours, RTK's angular gaps)
+    over the full circle's 2 pi / n [view], float64."""
+    s, order, gaps = _gaps(angles)
+    step = np.empty(s.size)
+    step[order] = 0.5 * (gaps + np.roll(gaps, 1))
+    return step * s.size / (2 * np.pi)
 
 
 def _gaps(angles):
@@ -168,7 +172,8 @@ def short_scan_weights(geo: Geometry):
         return None
     first, delta = scan
     angles = view_angles(geo)
-    alpha = np.arctan(-_view_columns(geo, angles) / _view_dsd(geo))   # atan(-l / DSO_i)
+    l, dsd, _ = _view_columns(geo, angles)
+    alpha = np.arctan(-l / dsd)                              # atan(-l / DSO_i), l at the axis
     beta = np.mod(angles - first, 2 * np.pi)[:, None]
     tiny = 1e-12                                # delta -/+ alpha <= 0: no data to weight
     rise = 2 * np.sin(np.pi * beta / (4 * np.maximum(delta - alpha, tiny))) ** 2
@@ -177,11 +182,7 @@ def short_scan_weights(geo: Geometry):
     w = np.where(beta <= 2 * delta - 2 * alpha, rise,
                  np.where(beta <= np.pi - 2 * alpha, 2.0,
                           np.where(beta <= np.pi + 2 * delta, fall, 0.0)))
-    # each view's angular step: half the arc to its two neighbours (the circle's 2 pi / n)
-    s, order, gaps = _gaps(angles)
-    step = np.empty(s.size)
-    step[order] = 0.5 * (gaps + np.roll(gaps, 1))
-    return w * (step * s.size / (2 * np.pi))[:, None]
+    return w * view_steps(angles)[:, None]
 
 
 def pad_offset_detector(proj: np.ndarray, geo: Geometry):
