@@ -272,6 +272,14 @@ def test_report_numbers_come_from_metrics(parallel, tmp_path):
     assert re.search(r"!\[best \w+\]\(img/results/montage_best_\w+\.png\)", md)
     assert any((tmp_path / "docs" / "img" / "results").glob("montage_*.png"))
     assert f"mi-grg experiment table1 --suite {suite} --out {out}" in md
+    # a second report in the same folder keeps its figures apart: the first's stay as written
+    first = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns)
+             for p in (tmp_path / "docs" / "img" / "results").glob("*.png")}
+    other = write_report(out, tmp_path / "docs" / "other.md").read_text()
+    assert re.search(r"!\[best \w+\]\(img/other/montage_best_\w+\.png\)", other)
+    assert any((tmp_path / "docs" / "img" / "other").glob("montage_*.png"))
+    assert {p.name: (p.stat().st_ino, p.stat().st_mtime_ns)
+            for p in (tmp_path / "docs" / "img" / "results").glob("*.png")} == first
     # which code produced the runs, as each metrics.json recorded it
     assert f"mi_grg {_metrics(out, 'shepp', 'fdk')['machine']['mi_grg']}" in md
 

@@ -200,7 +200,8 @@ def read_runs(path: Path):
 
 
 def report_target(out: Path, report: Path, all_rows: dict) -> Path:
-    """The report's image folder, once ``mi-grg report``'s rule holds (DatasetError, one
+    """The report's image folder, ``img/<report's name>/`` beside it (two reports in one
+    folder keep their own figures), once ``mi-grg report``'s rule holds (DatasetError, one
     line, otherwise): ``out`` holds runs, and the report and its images go nowhere the
     runner wrote."""
     from mi_grg.data.dataset import DatasetError
@@ -214,6 +215,6 @@ def report_target(out: Path, report: Path, all_rows: dict) -> Path:
     from mi_grg.lab.suite import EXPERIMENTS
     inputs = [out / "data", out / "suite.json",
               *(out / name for name in {*EXPERIMENTS, *all_rows})]
-    images = report.parent / "img" / "results"
+    images = report.parent / "img" / report.stem
     check_report_out(report, images, inputs, lambda head: head.startswith(REPORT_HEAD))
     return images

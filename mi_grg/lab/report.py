@@ -4,7 +4,7 @@
 
 Reads ``OUT/<experiment>/runs.json`` (written by ``mi_grg.lab.runner``) and each run's
 ``metrics.json`` / ``train_log.csv`` / ``progress_log.csv``; writes the markdown file and
-its PNGs under ``<report dir>/img/results/``. Only numbers found in those files appear in
+its PNGs under ``<report dir>/img/<report name>/``. Only numbers found in those files appear in
 our tables; a missing or failed run shows as "—". The paper's numbers are transcribed from
 its tables and labelled as such (its own data, X-3D at 256^3 / 512^2, not comparable case by
 case).
@@ -390,7 +390,7 @@ def _extremes_md(t1, out: Path, img_dir: Path, rel: str) -> list:
 
 
 def write_report(out_dir, report_path="docs/results.md") -> Path:
-    """Write the markdown report (and its PNGs under <report dir>/img/results/), built
+    """Write the markdown report (and its PNGs under <report dir>/img/<report name>/), built
     beside them and swapped in whole; never over what the runner wrote
     (``mi_grg.lab.finished.report_target``)."""
     from mi_grg.data.outputs import staged_report
