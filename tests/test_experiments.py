@@ -379,7 +379,7 @@ def test_fair_margin_oracle_and_anytime_tables(tmp_path):
     assert "oracle" in md and "29.50 (5)" in md
     # the speed plot of case a shows Table 1's held-out run beside the speed runs
     assert "asd-pocs (held-out): point" in md and "| a | asd-pocs (held-out) |" in md
-    assert (tmp_path / "img" / "results" / "speed_a.png").is_file()
+    assert (tmp_path / "img" / "r" / "speed_a.png").is_file()
 
 
 def test_iteration_plot_and_replayed_stop(tmp_path):
@@ -410,7 +410,7 @@ def test_iteration_plot_and_replayed_stop(tmp_path):
     # the report replays the default rule (patience 2, margin >= 3 x the scatter)
     assert replay(its2, falls) == (60, 20)
     assert "replayed_stop: 60" in md and "best_heldout_iteration: 20" in md
-    assert (tmp_path / "img" / "results" / "iterations_c1.png").stat().st_size > 1000
+    assert (tmp_path / "img" / "r" / "iterations_c1.png").stat().st_size > 1000
     assert len(load_runs(out)["iterations"]) == 1
 
 
