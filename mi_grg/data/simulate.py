@@ -72,19 +72,8 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
     elif not isinstance(phantom, EllipsoidPhantom):
         raise TypeError(f"phantom must be a name or an EllipsoidPhantom, got "
                         f"{type(phantom).__name__}")
-    if test_angles is None:
-        test_angles = default_test_angles(geometry.n_views)
-    test_angles = np.asarray(test_angles, np.float64).reshape(-1)
-    if not np.all(np.isfinite(test_angles)):
-        raise ValueError("test_angles must be finite (radians)")
-
-    train = phantom.line_integrals(geometry)
-    if noise is not None:
-        train = noise.apply(train, np.random.default_rng([noise_seed, 1]))
-    if test_angles.size:
-        test = phantom.line_integrals(geometry, test_angles).astype(np.float32)
-    else:
-        test = np.zeros((0, *geometry.nDetector), np.float32)
+    train, test, test_angles = simulated_views(phantom.line_integrals, geometry, test_angles,
+                                               noise, noise_seed)
     vol = phantom.voxelize(geometry, supersample=supersample)
     info = {
         "source": "mi_grg.data.simulate",
@@ -94,14 +83,38 @@ def simulate_case(phantom, geometry: Geometry, test_angles=None, noise: NoiseMod
         "seed": seed,
         "noise_seed": noise_seed,
         "supersample": int(supersample),
-        "mode": geometry.mode,
-        "n_voxel": list(geometry.nVoxel),
-        "n_detector": list(geometry.nDetector),
-        "n_train": geometry.n_views,
-        "n_test": int(test_angles.size),
+        **scan_fields(geometry, test_angles),
     }
-    return Case(geometry=geometry, train=np.asarray(train, np.float32), test_angles=test_angles,
-                test=test, vol_gt=vol, scene_scale=1.0, info=info)
+    return Case(geometry=geometry, train=train, test_angles=test_angles, test=test, vol_gt=vol,
+                scene_scale=1.0, info=info)
+
+
+def simulated_views(project, geometry: Geometry, test_angles, noise: NoiseModel | None,
+                    noise_seed: int):
+    """(train, test, test_angles) of a simulation: ``project(geometry[, angles])`` gives
+    exact line integrals [view, v, u]; noise (``np.random.default_rng([noise_seed, 1])``)
+    goes on the training views only; test_angles None -> ``default_test_angles``, empty ->
+    test of shape [0, v, u]. Projections float32, angles float64 radians."""
+    if test_angles is None:
+        test_angles = default_test_angles(geometry.n_views)
+    test_angles = np.asarray(test_angles, np.float64).reshape(-1)
+    if not np.all(np.isfinite(test_angles)):
+        raise ValueError("test_angles must be finite (radians)")
+    train = project(geometry)
+    if noise is not None:
+        train = noise.apply(train, np.random.default_rng([noise_seed, 1]))
+    if test_angles.size:
+        test = np.asarray(project(geometry, test_angles), np.float32)
+    else:
+        test = np.zeros((0, *geometry.nDetector), np.float32)
+    return np.asarray(train, np.float32), test, test_angles
+
+
+def scan_fields(geometry: Geometry, test_angles) -> dict:
+    """The scan's sizes as a simulated case's ``info`` records them."""
+    return {"mode": geometry.mode, "n_voxel": list(geometry.nVoxel),
+            "n_detector": list(geometry.nDetector), "n_train": geometry.n_views,
+            "n_test": int(np.size(test_angles))}
 
 
 def check_simulation_memory(geometry: Geometry, n_test: int, where: str) -> None:

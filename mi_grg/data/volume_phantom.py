@@ -312,7 +312,7 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
         Case with float32 train/test [view, v, u], vol_gt [x, y, z] = nVoxel and ``info``
         recording the source file, its provenance and licence, and the sampling.
     """
-    from mi_grg.data.simulate import default_test_angles
+    from mi_grg.data.simulate import scan_fields, simulated_views
     if not isinstance(geometry, Geometry):
         raise TypeError(f"geometry must be a mi_grg.Geometry, got {type(geometry).__name__}")
     if noise is not None and not isinstance(noise, NoiseModel):
@@ -321,19 +321,10 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
         raise ValueError(f"ground_truth must be one of {GT_MODES}, got {ground_truth!r}")
     vol, src_info = load_volume(source)
     seed = int(seed)
-    if test_angles is None:
-        test_angles = default_test_angles(geometry.n_views)
-    test_angles = np.asarray(test_angles, np.float64).reshape(-1)
-    if not np.all(np.isfinite(test_angles)):
-        raise ValueError("test_angles must be finite (radians)")
     h = _step(geometry, vol.shape, oversample)
-    train = volume_line_integrals(vol, geometry, oversample=oversample)
-    if noise is not None:
-        train = noise.apply(train, np.random.default_rng([seed, 1]))
-    if test_angles.size:
-        test = volume_line_integrals(vol, geometry, test_angles, oversample=oversample)
-    else:
-        test = np.zeros((0, *geometry.nDetector), np.float32)
+    train, test, test_angles = simulated_views(
+        lambda g, a=None: volume_line_integrals(vol, g, a, oversample=oversample), geometry,
+        test_angles, noise, seed)
     gt = (average_to_grid(vol, geometry.nVoxel) if ground_truth == "average"
           else block_average(vol, geometry.nVoxel))
     info = {
@@ -352,11 +343,7 @@ def simulate_volume_case(source, geometry: Geometry, test_angles=None,
         },
         "noise": None if noise is None else noise.to_dict(),
         "seed": seed,
-        "mode": geometry.mode,
-        "n_voxel": list(geometry.nVoxel),
-        "n_detector": list(geometry.nDetector),
-        "n_train": geometry.n_views,
-        "n_test": int(test_angles.size),
+        **scan_fields(geometry, test_angles),
     }
-    return Case(geometry=geometry, train=np.asarray(train, np.float32), test_angles=test_angles,
-                test=test, vol_gt=gt, scene_scale=1.0, info=info)
+    return Case(geometry=geometry, train=train, test_angles=test_angles, test=test, vol_gt=gt,
+                scene_scale=1.0, info=info)
