@@ -41,6 +41,7 @@ import inspect
 import json
 import os
 import shutil
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -173,10 +174,22 @@ def _execute(func, tasks: list, jobs: int, desc: str, progress: bool,
     return results
 
 
+def _stop_with_runner(runner_pid: int, poll_s: float = 1.0) -> None:
+    """Worker initializer: a worker whose runner is gone (killed, not interrupted: SIGTERM
+    reaches the runner alone) exits, instead of training on beside the next runner in the
+    same run folder; its last checkpoint stays there for that runner to resume."""
+    def watch():
+        while os.getppid() == runner_pid:
+            time.sleep(poll_s)
+        os._exit(3)
+    threading.Thread(target=watch, name="stop-with-runner", daemon=True).start()
+
+
 def _run_local(func, tasks: list, jobs: int):
     """Yield (i, func(tasks[i])) as tasks finish in fresh spawned processes, ``jobs`` at a
     time. A worker that dies (segfault, OOM kill) breaks the pool; its unfinished tasks are
-    then retried one per pool, so a crashing run only fails itself."""
+    then retried one per pool, so a crashing run only fails itself. Workers stop when this
+    process dies (``_stop_with_runner``)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -186,7 +199,8 @@ def _run_local(func, tasks: list, jobs: int):
         idx, n = rounds.pop(0)
         broken = []
         with ProcessPoolExecutor(max_workers=max(1, min(n, len(idx))), mp_context=ctx,
-                                 max_tasks_per_child=1) as pool:
+                                 max_tasks_per_child=1, initializer=_stop_with_runner,
+                                 initargs=(os.getpid(),)) as pool:
             futs = {pool.submit(func, tasks[i]): i for i in idx}
             for fut in as_completed(futs):
                 i = futs[fut]
