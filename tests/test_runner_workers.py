@@ -1,12 +1,18 @@
-"""The experiment runner's local workers stop when the runner is killed: a worker left
-running would go on writing its run folder beside the next runner that resumes it."""
+"""The experiment runner's processes: its local workers stop when the runner is killed (a
+worker left running would go on writing its run folder beside the next runner that resumes
+it), and one runner at a time writes an --out."""
 import os
+import socket
 import signal
 import subprocess
 import sys
 import textwrap
 import time
 from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _alive(pid: int) -> bool:
@@ -60,3 +66,31 @@ def test_a_killed_runner_takes_its_workers_with_it(tmp_path):
             runner.kill()
         if worker is not None and _alive(worker):
             os.kill(worker, signal.SIGKILL)
+
+
+def test_one_runner_at_a_time(tmp_path):
+    from mi_grg.lab.runner import RUNNER_FILE, _one_runner, run_experiment
+    out, host = tmp_path / "results", socket.gethostname()
+    out.mkdir()
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / RUNNER_FILE).write_text(f"{host} {other.pid}")
+        with pytest.raises(ValueError, match=rf"another `mi-grg experiment` \(pid {other.pid}"):
+            run_experiment("table1", ROOT / "experiments" / "suite_smoke.json", out,
+                           methods="fdk", progress=False)
+        assert not (out / "suite.json").exists()        # refused before writing anything
+    finally:
+        other.kill()
+        other.wait()
+    # a runner that died is taken over; the file goes when the runner ends
+    with _one_runner(out):
+        assert (out / RUNNER_FILE).read_text() == f"{host} {os.getpid()}"
+        with pytest.raises(ValueError, match=f"pid {os.getpid()}"):
+            with _one_runner(out):
+                pass
+    assert not (out / RUNNER_FILE).exists()
+    # one on another host cannot be checked from here: refused, with the file named
+    (out / RUNNER_FILE).write_text("elsewhere 12345")
+    with pytest.raises(ValueError, match="remove .*runner.pid"):
+        with _one_runner(out):
+            pass
