@@ -349,10 +349,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         from mi_grg.lab.cluster import connect
         client = connect(dask)     # before anything is written: an unreachable one leaves none
     # closed on the way out, failure or not (the cluster's queued tasks are cancelled)
-    with contextlib.ExitStack() as stack, \
-            client if client is not None else contextlib.nullcontext():
-        out.mkdir(parents=True, exist_ok=True)
-        stack.enter_context(_one_runner(out))
+    with client if client is not None else contextlib.nullcontext(), _one_runner(out):
         (out / "suite.json").write_text(Path(suite.path).read_text())
         if client is None:
             n_jobs = jobs or default_jobs(suite.variant, max(len(todo), len(datas), 1))
@@ -378,10 +375,11 @@ RUNNER_FILE = ".runner.pid"
 @contextlib.contextmanager
 def _one_runner(out: Path):
     """One runner at a time in ``out``: a second would run the same runs into the same
-    folders. ``out/.runner.pid`` names the running one (host and pid); a runner that died
-    on this host is taken over; one on another host (a shared file system) must be ended
-    there, or its file removed by hand."""
+    folders. ``out`` is made; ``out/.runner.pid`` names the running one (host and pid); a
+    runner that died on this host is taken over; one on another host (a shared file
+    system) must be ended there, or its file removed by hand."""
     from mi_grg.data.outputs import _alive
+    out.mkdir(parents=True, exist_ok=True)
     path, host = out / RUNNER_FILE, socket.gethostname()
     me = f"{host} {os.getpid()}"
     for _ in range(5):
@@ -393,8 +391,8 @@ def _one_runner(out: Path):
                 other_pid = int(other_pid)
             except (OSError, ValueError):   # gone, or half-written by a runner starting now
                 time.sleep(0.2)
-                other_host, other_pid = host, -1
-            if other_host != host or (other_pid > 0 and _alive(other_pid)):
+                continue
+            if other_host != host or _alive(other_pid):
                 raise ValueError(
                     f"--out {out}: another `mi-grg experiment` (pid {other_pid} on "
                     f"{other_host}) is running there; wait for it or stop it (if none runs, "
@@ -405,7 +403,8 @@ def _one_runner(out: Path):
             f.write(me)
         break
     else:
-        raise ValueError(f"--out {out}: cannot take {path} (runners starting at once?)")
+        raise ValueError(f"--out {out}: cannot take {path} (a runner starting now, or a "
+                         "damaged file: remove it if none runs)")
     try:
         yield
     finally:
