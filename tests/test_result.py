@@ -100,10 +100,20 @@ def test_fit_to_volume_recovers_a_field_from_a_perturbed_start(tiny_case):
                                  a["densities"] * 0.8)
     lr = {"positions": 2e-4, "raw_densities": 1e-2, "raw_scales": 5e-3,
           "raw_rotations": 1e-3}
+    checks = []
+
+    def on_check(it, g_it, db):
+        # what the hook is told is that state's own fidelity
+        assert fidelity_db(voxelize(g_it, geo, extent=3.0), target) == pytest.approx(db)
+        checks.append((it, db))
+
     fit, info = fit_to_volume(start, geo, target, lr=lr, iterations=150, extent=3.0,
-                              progress=False)
+                              progress=False, on_check=on_check)
     got = fidelity_db(voxelize(fit, geo, extent=3.0), target)
     assert got == pytest.approx(info["fidelity_db"], abs=1e-6)
     assert got > info["fidelity_db_start"] + 10.0, info
+    # every check reported, and the fit returned is the best of them
+    assert [it for it, _ in checks] == list(range(25, info["iterations"] + 1, 25))
+    assert info["fidelity_db"] == max(db for _, db in checks)
     with pytest.raises(ValueError, match="target has shape"):
         fit_to_volume(start, geo, target[:-1], lr=lr, iterations=5, extent=3.0)

@@ -190,6 +190,16 @@ def test_the_window_does_not_make_runs_without_held_out_views_stale():
         assert stale_keys(m) == want
 
 
+def test_the_refinements_options_do_not_make_runs_without_it_stale():
+    """The refinement's and the fit back's options act only with refine="tv": an r2 run
+    recorded under another fit_iterations is current, a gr run is not."""
+    from mi_grg.lab.staleness import stale_keys
+    for method, want in (("r2", []), ("gr", ["fit_iterations", "fit_rate_scale"])):
+        cfg = {**make_config(method).to_flat(), "fit_iterations": 300, "fit_rate_scale": 1.0}
+        m = {"method": method, "options": {}, "method_info": {**AUTO, "config": cfg}}
+        assert stale_keys(m) == want
+
+
 def test_a_wider_stop_margin_leaves_runs_that_never_stopped_current():
     """stop_noise only widens the margin: a run recorded without it (0) that never stopped and
     returned its last state is current; one that stopped, or that returned a kept state, or

@@ -40,6 +40,10 @@ ITERATION_RULES = {
 #: Options of the held-out window (mi_grg.protocol.views): without held-out views
 #: (holdout_every = 0) they change nothing, so a run made under other values is not stale.
 WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
+#: Options of the TV refinement and the fit back (mi_grg.training.result): without the
+#: refinement (refine = "none": r2, gr-paper) they change nothing.
+REFINE_KEYS = ("refine_lam", "refine_max_iterations", "refine_anchor", "refine_fall",
+               "refine_output", "fit_iterations", "fit_rate_scale")
 
 
 def stale_keys(m: dict) -> list:
@@ -79,6 +83,8 @@ def stale_keys(m: dict) -> list:
               if now.get(k) != used.get(k) and k not in BOOKKEEPING}
     if now.get("holdout_every") == 0 and used.get("holdout_every") == 0:
         differ -= set(WINDOW_KEYS)     # no view held out: the window has nothing to act on
+    if now.get("refine") == "none" and used.get("refine") == "none":
+        differ -= set(REFINE_KEYS)     # no refinement: its options have nothing to act on
     if "stop_noise" in differ and _margin_inert(m, used, now):
         differ.discard("stop_noise")
     return sorted(differ | _auto_changed(m, used, recorded)) + split

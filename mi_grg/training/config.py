@@ -46,7 +46,8 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 #: Fields that act only after training (on the returned state): a resume may change them,
 #: since no checkpointed state depends on them, but a finished run is stale for them.
 AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
-                  "refine_anchor", "refine_fall", "fit_iterations", "voxel_average")
+                  "refine_anchor", "refine_fall", "fit_iterations", "fit_rate_scale",
+                  "voxel_average")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
 # without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
@@ -243,8 +244,11 @@ class Protocol:
     refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
                                    # the Gaussians, vol_pred is their voxelisation;
                                    # "voxels": vol_pred is the refined grid
-    fit_iterations: int = 300      # Adam steps of that fit (it stops early once it
+    fit_iterations: int = 150      # Adam steps of that fit (it stops early once it
                                    # matches the grid to mi_grg.training.distill.FIT_STOP_DB)
+    fit_rate_scale: float = 2.0    # its Adam rates: the training's initial rates times
+                                   # this. Why 150 at 2x: it scores as 300 steps at 1x did,
+                                   # in half the time (docs/benchmarks.md, "The fit back")
     voxel_average: float = 0.75    # share of a voxel's box variance the returned field is
                                    # blurred by, so that voxelising it gives voxel averages
                                    # (mi_grg.core.voxel_average); 0: centre samples (paper)
@@ -368,6 +372,9 @@ def _validate(c: dict) -> None:
         raise ConfigError("refine_max_iterations must be >= 1")
     if not 0.0 < c["refine_fall"] <= 1.0:
         raise ConfigError(f"refine_fall must be a share in (0, 1], got {c['refine_fall']}")
+    if not 0.0 < c["fit_rate_scale"] < math.inf:
+        raise ConfigError(f"fit_rate_scale must be a finite factor > 0, got "
+                          f"{c['fit_rate_scale']}")
     if not c["voxel_average"] <= 1.0:
         raise ConfigError(f"voxel_average must be a fraction in [0, 1], got "
                           f"{c['voxel_average']}")

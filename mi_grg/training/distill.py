@@ -39,11 +39,14 @@ def fidelity_db(vol: np.ndarray, target: np.ndarray) -> float:
 
 
 def fit_to_volume(g: Gaussians, geometry: Geometry, target: np.ndarray, *, lr: dict,
-                  iterations: int, extent: float, progress: bool = True) -> tuple:
+                  iterations: int, extent: float, progress: bool = True,
+                  on_check=None) -> tuple:
     """(Gaussians, info) fitted to ``target`` [x, y, z] from ``g`` (module docstring).
 
     ``lr``: Adam's initial rates per raw group (``mi_grg.training.optim``), decaying to a
     tenth over ``iterations``. ``info``: iterations run and the fidelity before and after.
+    ``on_check(iteration, Gaussians, fidelity_db)``, if given, is called at every check
+    (research records: bench/fit_back.py).
     """
     from tqdm import tqdm
     from mi_grg.core.voxelizer import voxelize
@@ -73,6 +76,8 @@ def fit_to_volume(g: Gaussians, geometry: Geometry, target: np.ndarray, *, lr: d
                 fit = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
                 db = fidelity_db(voxelize(fit, geometry, extent=extent), target)
                 info.update(iterations=it, fidelity_db=db)
+                if on_check is not None:
+                    on_check(it, fit, db)
                 if db > best[0]:
                     best = (db, fit)
                 if db >= FIT_STOP_DB:

@@ -272,9 +272,10 @@ def _averaged(trainer, g: Gaussians) -> Gaussians:
 
 
 def _fit_rates(trainer) -> dict:
-    o = trainer.cfg.optim
-    return {"positions": o.lr_position, "raw_densities": o.lr_density,
-            "raw_scales": o.lr_scale, "raw_rotations": o.lr_rotation}
+    """The fit back's Adam rates: the training's initial rates x ``fit_rate_scale``."""
+    o, f = trainer.cfg.optim, trainer.cfg.protocol.fit_rate_scale
+    return {"positions": f * o.lr_position, "raw_densities": f * o.lr_density,
+            "raw_scales": f * o.lr_scale, "raw_rotations": f * o.lr_rotation}
 
 
 class _Parts:
