@@ -26,7 +26,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 import mi_grg  # noqa: F401  (selects the variant)
 
@@ -34,11 +33,10 @@ def follow(out: Path, case_name: str, counts: list, rate_scale=None) -> dict:
     """The fit's curve for one finished run (module docstring)."""
     import mi_grg.training.distill as distill
     from mi_grg.data.dataset import load_case
-    from mi_grg.classical.pdhg import pdhg
     from mi_grg.evaluation.metrics import psnr_3d
     from mi_grg.training.config import make_config
-    from mi_grg.training.result import (_averaged, _fit_rates, anchored_data,
-                                        field_volume)
+    from mi_grg.training.result import (_averaged, _fit_rates, field_volume,
+                                        final_grid)
     from mi_grg.training.trainer import Trainer
     from mi_grg.core.voxelizer import voxelize
     run_dir = out / "table1" / case_name / "gr"
@@ -59,11 +57,8 @@ def follow(out: Path, case_name: str, counts: list, rate_scale=None) -> dict:
         geo = trainer.case.geometry
         field = _averaged(trainer, trainer.field_gaussians())
         vol = field_volume(trainer, field)
-        anchored = refine["anchor"]["anchored"]
-        data = (anchored_data(trainer, field, vol, np.arange(geo.n_views)) if anchored
-                else trainer.case.train)
-        grid = pdhg(data, geo, n_iter=refine["iterations"], lam=refine["lam"], init=vol,
-                    progress=False)
+        grid = final_grid(trainer, field, vol, refine["anchor"]["anchored"],
+                          refine["iterations"])
         start = {"iteration": 0, "seconds": 0.0,
                  "fidelity_db": distill.fidelity_db(vol, grid),
                  "psnr_3d": float(psnr_3d(vol, case.vol_gt))}

@@ -171,9 +171,8 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     """(vol_pred, exported Gaussians, info) of steps 2-3 for the returned ``field`` (plain,
     voxel-averaged) with voxelisation ``vol``; ``kept`` decides the length on the held-out
     views of ``decider`` (the trainer itself, or its decision run)."""
-    from mi_grg.classical.pdhg import pdhg
     from mi_grg.training.distill import fit_to_volume
-    cfg, geo = trainer.cfg.protocol, trainer.case.geometry
+    cfg = trainer.cfg.protocol
     forms = {"auto": (True, False), "on": (True,), "off": (False,)}[cfg.refine_anchor]
     start = field_volume(decider, kept)     # once for both forms
     lengths = {a: decide_length(decider, kept, progress, anchored=a, start=start)
@@ -200,20 +199,30 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     if length["iterations"] == 0:
         return vol, field, {**info, "grid": vol}
     t0 = time.perf_counter()
-    every = np.arange(geo.n_views)
-    data = anchored_data(trainer, field, vol, every) if anchored else trainer.case.train
-    grid = pdhg(data, geo, n_iter=length["iterations"], lam=cfg.refine_lam, init=vol,
-                progress=False)
+    grid = final_grid(trainer, field, vol, anchored, length["iterations"])
     info["final_seconds"] = time.perf_counter() - t0
     info["grid"] = grid
     if cfg.refine_output == "voxels":
         return grid, field, info
     t0 = time.perf_counter()
-    fitted, fit = fit_to_volume(field, geo, grid, lr=_fit_rates(trainer),
+    fitted, fit = fit_to_volume(field, trainer.case.geometry, grid, lr=_fit_rates(trainer),
                                 iterations=trainer.cfg.protocol.fit_iterations,
                                 extent=trainer.extent, progress=progress)
     info["fit"] = {**fit, "seconds": time.perf_counter() - t0}
     return field_volume(trainer, fitted), fitted, info
+
+
+def final_grid(trainer, field: Gaussians, vol: np.ndarray, anchored: bool,
+               iterations: int) -> np.ndarray:
+    """The refined grid [x, y, z] (step 2): ``iterations`` of PDHG at ``refine_lam`` from
+    ``vol`` (the field's voxelisation) on every view's anchored data (``anchored``) or
+    measured data."""
+    from mi_grg.classical.pdhg import pdhg
+    geo = trainer.case.geometry
+    data = (anchored_data(trainer, field, vol, np.arange(geo.n_views)) if anchored
+            else trainer.case.train)
+    return pdhg(data, geo, n_iter=iterations, lam=trainer.cfg.protocol.refine_lam,
+                init=vol, progress=False)
 
 
 def kept_field(trainer, progress: bool = True) -> tuple:
