@@ -197,6 +197,65 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
 
 
+def _rewrite_checkpoint_config(path: Path, **changes) -> None:
+    """As if the checkpoint at ``path`` had been written under other training options."""
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["config"].update(changes)
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+
+
+def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path):
+    """A finished gr run stale only in an option that acts after training (fit_iterations)
+    resumes from its final checkpoint and redoes only the result's steps; one stale in a
+    training option (tv_every) starts afresh. An interrupted run (a checkpoint, no
+    metrics.json) resumes if its checkpoint was made under today's training config, and
+    starts afresh (rather than failing) if not."""
+    suite = _suite(tmp_path, methods=("gr",))
+    raw = json.loads(suite.read_text())
+    raw["cases"] = raw["cases"][:1]
+    raw["method_options"] = {"gr": {"iterations": 4, "n_points": 300, "holdout_every": 0}}
+    suite.write_text(json.dumps(raw))
+    out, run_dir = tmp_path / "out", tmp_path / "out" / "table1" / "shepp" / "gr"
+    run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
+    first = json.loads((run_dir / "metrics.json").read_text())
+    assert "resumed_from" not in first["method_info"]["init"]
+    assert (run_dir / "checkpoint.npz").is_file()
+
+    def again(resumes):
+        plan = run_experiment("table1", suite, out, dry_run=True, methods="gr")
+        row = next(r for r in plan["runs"] if r["run"] == "gr")
+        assert row["status"] == "todo" and row.get("resumes") is resumes
+        res = run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
+        assert res["failed"] == 0 and stale_options(run_dir) == []
+        return json.loads((run_dir / "metrics.json").read_text())
+
+    def record(**changes):
+        m = json.loads((run_dir / "metrics.json").read_text())
+        m["method_info"]["config"].update(changes)
+        (run_dir / "metrics.json").write_text(json.dumps(m))
+
+    record(fit_iterations=first["method_info"]["config"]["fit_iterations"] + 1)
+    assert stale_options(run_dir) == ["fit_iterations"]
+    m = again(resumes=True)
+    assert m["method_info"]["init"] == {"resumed_from": 4}
+    assert m["method_info"]["resumed_seconds"] > 0
+    assert m["psnr_3d"] == pytest.approx(first["psnr_3d"], abs=0.05)
+
+    record(tv_every=first["method_info"]["config"]["tv_every"] + 1)
+    assert "resumed_from" not in again(resumes=False)["method_info"]["init"]
+
+    (run_dir / "metrics.json").unlink()                      # interrupted after its checkpoint
+    assert again(resumes=True)["method_info"]["init"] == {"resumed_from": 4}
+
+    (run_dir / "metrics.json").unlink()
+    _rewrite_checkpoint_config(run_dir / "checkpoint.npz",
+                               tv_every=first["method_info"]["config"]["tv_every"] + 1)
+    assert "resumed_from" not in again(resumes=False)["method_info"]["init"]
+
+
 def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
     """A gr run that left ``iterations`` automatic is stale where the rule it recorded gives
     another count than today's at its size, not wherever the rule's name differs."""
@@ -310,6 +369,13 @@ def test_summary_lines(tmp_path):
     assert "+0.25 dB on average" in lines[0]           # mean of +1.0 and -0.5
     assert "b (R2-Gaussian (r2) ahead by 0.50 dB)" in lines[1]
     assert "gr / r2 = 1.50x" in lines[2] and "complete" not in lines[2]
+    assert "training" not in lines[2]                  # no run says how long its result took
+    for case, steps in (("a", 40.0), ("b", 60.0)):     # gr's time: training + result's steps
+        m = _metrics(out, case, "gr")
+        m["method_info"] = {"result": {"seconds": steps}}
+        (out / "table1" / case / "gr" / "metrics.json").write_text(json.dumps(m))
+    assert "of gr's 150.0 s, training 100.0 s and the result's steps 50.0 s" in \
+        summary_lines(out)[2], summary_lines(out)[2]
     # a case without r2 / gr: times and the extra table are over the complete cases only
     _fake_run(out, "table1", "c", "fdk", "AO", "fdk", psnr_3d=25.0, ssim_3d=0.5, seconds=9.0)
     lines = summary_lines(out)

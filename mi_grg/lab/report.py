@@ -71,8 +71,22 @@ def summary_lines(out_dir) -> list:
     if times.get("gr") and times.get("r2"):
         ratio = f" (gr / r2 = {times['gr'] / times['r2']:.2f}x)"
     over = "" if len(done) == len(cases) else f" (over the {len(done)} complete cases)"
-    line3 = f"Mean time per case{over}: " + ", ".join(parts) + ratio + "."
+    line3 = (f"Mean time per case{over}: " + ", ".join(parts) + ratio
+             + _result_steps_time(idx, done, times.get("gr")) + ".")
     return [line1, line2, line3, margin_line(rows)]
+
+
+def _result_steps_time(idx, done, gr_mean) -> str:
+    """Of gr's mean time, its result's steps (method_info.result.seconds) and the rest
+    (De-Init, training, its decisions): a run resumed to redo only the result's steps adds
+    the earlier call's wall clock to its time, so the split says where each came from."""
+    steps = [((idx.get((c, "gr")) or {}).get("metrics") or {}).get("method_info", {})
+             .get("result", {}).get("seconds") for c in done]
+    if gr_mean is None or not steps or any(not isinstance(t, (int, float)) for t in steps):
+        return ""
+    t = float(np.mean(steps))
+    return (f"; of gr's {_fmt_time(gr_mean)} s, training {_fmt_time(gr_mean - t)} s and "
+            f"the result's steps {_fmt_time(t)} s")
 
 
 def margin_line(rows) -> str:

@@ -23,7 +23,9 @@ Layout: ``OUT/data/<case>/`` (simulated once, R2-Gaussian layout, reused),
 log.txt, and error.txt on failure), ``OUT/<experiment>/runs.json`` (status of every run),
 ``OUT/suite.json`` (the suite last run). A run whose metrics.json exists is not rerun,
 unless it is an r2/gr run whose recorded training config differs from what this code
-resolves its options to (a default changed since: ``stale_options``); a run identical to
+resolves its options to (a default changed since: ``stale_options``; where only options
+that act after training changed, the run resumes from its final checkpoint and redoes only
+the result's steps, else it starts afresh); a run identical to
 one done elsewhere in OUT (same data, method and options) becomes a relative symlink to it
 instead of running again. ``OUT/<experiment>/runs.json`` is rewritten as runs finish.
 
@@ -53,7 +55,7 @@ from mi_grg.lab.curves import register_experiment_methods
 from mi_grg.lab.finished import is_finished, read_finished
 from mi_grg.lab.plan import RunSpec, plan_experiment
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
-from mi_grg.lab.staleness import stale_keys
+from mi_grg.lab.staleness import resumes, stale_keys
 
 
 def _worker_setup(variant: str, threads: int | None, extra: dict) -> None:
@@ -360,7 +362,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         inv = _Invocation(name, names, suite, out, methods, cases, progress, client, n_jobs,
                           where, threads_per_run)
         sim_failed = inv.simulate(datas)
-        _write_specs(todo, out)
+        _write_specs(todo, rows, out)
         inv.run(todo, specs, rows, sim_failed)
         _resolve_duplicates(specs, rows, out)
         inv.write_index(rows, final=True)
@@ -441,20 +443,27 @@ def _plan_rows(specs: list, out: Path):
             row["status"], row["target"] = "duplicate", str(first_of[key].run_dir(out))
         else:
             row["status"] = "todo"
+            if (d / "checkpoint.npz").is_file():
+                stale = row.get("stale") if (d / "metrics.json").is_file() else None
+                row["resumes"] = resumes(s.method, s.options, d / "checkpoint.npz", stale)
             first_of[key] = s
             todo.append(s)
         rows.append(row)
     return rows, todo
 
 
-def _write_specs(todo: list, out: Path) -> None:
-    """Each run's run_spec.json, before any runs: a run in progress is recognisable on disk."""
+def _write_specs(todo: list, rows: list, out: Path) -> None:
+    """Each run's run_spec.json, before any runs: a run in progress is recognisable on disk.
+    A run starts afresh (its metrics.json and checkpoint gone) unless its row ``resumes``
+    (``mi_grg.lab.staleness.resumes``): then its checkpoint stays and the run continues from it."""
+    resume = {r["dir"] for r in rows if r.get("resumes")}
     for s in todo:
         d = s.run_dir(out)
         if d.is_symlink():            # linked to a run that is stale now: run it here
             d.unlink()
-        for old in ("metrics.json", "checkpoint.npz"):   # a stale run starts afresh
-            (d / old).unlink(missing_ok=True)
+        if str(d) not in resume:
+            (d / "checkpoint.npz").unlink(missing_ok=True)
+        (d / "metrics.json").unlink(missing_ok=True)
         d.mkdir(parents=True, exist_ok=True)
         (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
                                                     indent=2, default=str))

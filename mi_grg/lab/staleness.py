@@ -11,9 +11,10 @@ from __future__ import annotations
 import math
 
 from mi_grg.protocol.split import holdout_split
-from mi_grg.training.checkpoint import ADDED_LATER, upgrade_config_dict
-from mi_grg.training.config import (BOOKKEEPING, FLAT_KEYS, ITERATION_RULE, PRESETS,
-                                    TRAIN_EXTENT, TrainConfig, iterations_for_size,
+from mi_grg.training.checkpoint import (ADDED_LATER, checkpoint_config_changes,
+                                       upgrade_config_dict)
+from mi_grg.training.config import (AFTER_TRAINING, BOOKKEEPING, FLAT_KEYS, ITERATION_RULE,
+                                    PRESETS, TRAIN_EXTENT, TrainConfig, iterations_for_size,
                                     make_config)
 
 
@@ -88,6 +89,22 @@ def stale_keys(m: dict) -> list:
     if "stop_noise" in differ and _margin_inert(m, used, now):
         differ.discard("stop_noise")
     return sorted(differ | _auto_changed(m, used, recorded)) + split
+
+
+def resumes(method: str, options: dict, checkpoint, stale: list | None) -> bool:
+    """Whether a run to do (``method``, ``options``) continues from ``checkpoint`` instead
+    of starting afresh. An interrupted run (``stale`` None: no metrics.json) does if the
+    checkpoint was made under the training config this code gives the run; so does a
+    finished run whose ``stale_keys`` all act after training (``AFTER_TRAINING``): its
+    trained state is today's, and it redoes only the result's steps."""
+    if stale is not None and not set(stale) <= set(AFTER_TRAINING):
+        return False
+    opts = upgrade_config_dict({k: v for k, v in options.items() if k in FLAT_KEYS})
+    try:
+        cfg = make_config(method, options.get("config"), **opts)
+        return not checkpoint_config_changes(checkpoint, cfg)
+    except Exception:  # noqa: BLE001 (unreadable, or options this code no longer takes)
+        return False
 
 
 #: What the automatic extent and iteration count resolved to in the earliest runs (which

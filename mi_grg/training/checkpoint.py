@@ -141,11 +141,7 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
         meta = _meta(f, path)
         # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
         # lack fields added since (their value then: ADDED_LATER).
-        used = upgrade_config_dict({**ADDED_LATER, **meta["config"]})
-        want = cfg.to_flat()
-        changed = sorted(k for k in set(used) | set(want)
-                         if used.get(k) != want.get(k)
-                         and k not in BOOKKEEPING + AFTER_TRAINING)
+        changed = config_changes(meta["config"], cfg)
         if changed:
             raise ValueError(f"checkpoint {path} was made with a different config "
                              f"(differs in {changed}); resume with the same options")
@@ -172,6 +168,24 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
                       # older files: the training time, the part of the wall clock they kept
                       wall_seconds=meta.get("wall_seconds", meta["seconds"]),
                       graph_positions=graph_pos, time_plan=meta.get("time_plan"))
+
+
+def config_changes(recorded: dict, cfg: TrainConfig) -> list:
+    """The training fields in which a checkpoint's ``recorded`` config (meta["config"])
+    differs from ``cfg``: a resume must continue the same run, so any is an error
+    (``BOOKKEEPING`` and ``AFTER_TRAINING`` fields may differ). Older checkpoints spell
+    "automatic" as 0 for the fields that are None now, and lack fields added since (their
+    value then: ADDED_LATER)."""
+    used = upgrade_config_dict({**ADDED_LATER, **recorded})
+    want = cfg.to_flat()
+    return sorted(k for k in set(used) | set(want)
+                  if used.get(k) != want.get(k) and k not in BOOKKEEPING + AFTER_TRAINING)
+
+
+def checkpoint_config_changes(path, cfg: TrainConfig) -> list:
+    """``config_changes`` of the checkpoint at ``path`` against ``cfg`` ([]: it resumes)."""
+    with _open(path) as f:
+        return config_changes(_meta(f, path)["config"], cfg)
 
 
 def checkpoint_time_plan(path) -> dict | None:
