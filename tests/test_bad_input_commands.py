@@ -323,6 +323,12 @@ CASES = {
          "--dry-run"], lambda r: _edit_json(r / "suite.json", lambda s: s["experiments"][
              "table1"].update(methods=[1e308, "sart"])),
         ["experiments.table1.methods must be a list of method names"]),
+    "a --methods name no run uses": (
+        ["experiment", "table1", "--suite", "{r}/suite.json", "--out", "{r}/results",
+         "--methods", "sart,fkd", "--dry-run"], None, ["--methods fkd", "fdk", "sart"]),
+    "--jobs 0": (
+        ["experiment", "table1", "--suite", "{r}/suite.json", "--out", "{r}/results",
+         "--jobs", "0"], None, ["jobs must be >= 1, got 0"]),
     "a config value out of range": (
         ["reconstruct", "{r}/data", "--method", "gr", "--config", "{r}/config.xml", "--out",
          "{r}/new"], _config_value("holdout_until", "inf"), ["config.xml", "holdout_until"]),

@@ -191,3 +191,15 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
                         f"{m}, seed {int(sd)}")
     return specs
 
+
+
+def check_method_filter(names: list, suite: Suite, methods, specs: list) -> None:
+    """A ``--methods`` name that no run of experiments ``names`` uses is an error naming the
+    methods they do use (a misspelt name would otherwise plan nothing, silently)."""
+    def used(runs):
+        return {n for r in runs for n in (r.method, CURVE_METHODS_INV.get(r.method, r.method))}
+    unknown = [m for m in methods or () if m not in used(specs)]
+    if unknown:
+        offered = sorted(used(s for n in names for s in plan_experiment(n, suite)))
+        raise ValueError(f"--methods {','.join(unknown)}: no run of {', '.join(names)} uses "
+                         f"it; their methods: {', '.join(offered)}")

@@ -53,7 +53,7 @@ import numpy as np
 
 from mi_grg.lab.curves import register_experiment_methods
 from mi_grg.lab.finished import is_finished, read_finished
-from mi_grg.lab.plan import RunSpec, plan_experiment
+from mi_grg.lab.plan import RunSpec, check_method_filter, plan_experiment
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
 from mi_grg.lab.staleness import resumes, stale_keys
 
@@ -326,7 +326,10 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         names = [n for n in EXPERIMENTS if n in suite.experiments] or list(EXPERIMENTS)
     else:
         names = [name]
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     specs = [s for n in names for s in plan_experiment(n, suite, methods, cases)]
+    check_method_filter(names, suite, methods, specs)
     # the workers of a cluster may start elsewhere: they get absolute paths
     out = Path(out_dir).absolute() if dask else Path(out_dir)
     rows, todo = _plan_rows(specs, out)
