@@ -285,6 +285,9 @@ def cmd_experiment(args) -> int:
             extra = f" -> {r['target']}" if "target" in r else ""
             if r.get("stale"):
                 extra += f" (ran with other defaults: {', '.join(r['stale'])})"
+            if "resumes" in r:
+                extra += (" (resumes from its checkpoint)" if r["resumes"] else
+                          " (its checkpoint is of other training options: starts afresh)")
             print(f"{r['status']:12s} {r['experiment']}/{r['case']}/{r['run']}  "
                   f"[{r['method']} {json.dumps(r['options'])}]{extra}")
         print(f"{res['planned']} runs: {res.get('todo', 0)} to run, "

@@ -207,7 +207,7 @@ def _rewrite_checkpoint_config(path: Path, **changes) -> None:
     np.savez(path, **arrays)
 
 
-def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path):
+def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path, capsys):
     """A finished gr run stale only in an option that acts after training (fit_iterations)
     resumes from its final checkpoint and redoes only the result's steps; one stale in a
     training option (tv_every) starts afresh. An interrupted run (a checkpoint, no
@@ -228,6 +228,11 @@ def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path):
         plan = run_experiment("table1", suite, out, dry_run=True, methods="gr")
         row = next(r for r in plan["runs"] if r["run"] == "gr")
         assert row["status"] == "todo" and row.get("resumes") is resumes
+        from mi_grg.cli import main        # the dry run says so
+        assert main(["experiment", "table1", "--suite", str(suite), "--out", str(out),
+                     "--methods", "gr", "--dry-run"]) == 0
+        line = next(x for x in capsys.readouterr().out.splitlines() if "shepp/gr " in x)
+        assert ("resumes from its checkpoint" in line) is resumes, line
         res = run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
         assert res["failed"] == 0 and stale_options(run_dir) == []
         return json.loads((run_dir / "metrics.json").read_text())
