@@ -192,7 +192,6 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
     return specs
 
 
-
 def check_method_filter(names: list, suite: Suite, methods, specs: list) -> None:
     """A ``--methods`` name that no run of experiments ``names`` uses is an error naming the
     methods they do use (a misspelt name would otherwise plan nothing, silently)."""

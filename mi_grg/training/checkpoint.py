@@ -139,8 +139,6 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     ``AFTER_TRAINING`` fields may differ."""
     with _open(path) as f:
         meta = _meta(f, path)
-        # Older checkpoints spell "automatic" as 0 for the fields that are None now, and
-        # lack fields added since (their value then: ADDED_LATER).
         changed = config_changes(meta["config"], cfg)
         if changed:
             raise ValueError(f"checkpoint {path} was made with a different config "
