@@ -20,6 +20,18 @@ def variant(request):
 
 
 @pytest.fixture
+def one_thread():
+    """Dr.Jit's LLVM backend on one thread: float atomics then add in one order, so two runs
+    of the same seed agree (with two threads a loaded machine reorders them, and a
+    borderline Gaussian can densify in one run and not in the other)."""
+    import drjit as dr
+    n = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(n)
+
+
+@pytest.fixture
 def rng():
     return np.random.default_rng(1234)
 

@@ -71,17 +71,6 @@ class _Views:
         return getattr(self.rng, name)
 
 
-@pytest.fixture
-def one_thread():
-    """Dr.Jit's LLVM backend on one thread: float atomics then add in one order, so two runs
-    of the same seed agree (with two threads a loaded machine reorders them, and a
-    borderline Gaussian can densify in one run and not in the other)."""
-    n = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(n)
-
-
 def test_resume_draws_the_same_views_and_continues_the_loss(tiny_case, tmp_path, crash_after,
                                                              one_thread):
     """A run interrupted at iteration 47 and resumed from its checkpoint (40) trains on the
