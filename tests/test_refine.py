@@ -171,6 +171,9 @@ def test_refine_anchor_is_the_held_out_choice(tiny_case, monkeypatch):
     mse = a["heldout_mse"]
     assert a["anchored"] == (mse["anchored"] <= mse["plain"])
     assert r["heldout_mse"]["minimum"] == min(mse.values())
+    for form, curve in a["curves"].items():     # both curves recorded, the chosen one's too
+        assert min(m for _, m in curve) == mse[form] and curve[0][0] == 0
+    assert a["curves"]["anchored" if a["anchored"] else "plain"] == r["curve"]
 
     def no_anchor(*args, **kwargs):
         raise AssertionError("refine_anchor=off built anchored data")

@@ -190,7 +190,11 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
             "decision_seconds": sum(x["seconds"] for x in lengths.values()),
             "anchor": {"rule": cfg.refine_anchor, "anchored": anchored,
                        "heldout_mse": {("anchored" if a else "plain"): x["heldout_mse"]
-                                       for a, x in lengths.items()}}}
+                                       for a, x in lengths.items()},
+                       # every form's held-out curve, so that a length rule can be
+                       # replayed on both
+                       "curves": {("anchored" if a else "plain"): x["curve"]
+                                  for a, x in lengths.items()}}}
     if length["at_cap"]:
         print(f"refine=tv: the held-out residual still fell at refine_max_iterations="
               f"{cfg.refine_max_iterations} (metrics.json: at_cap); a 4x higher cap measured "
