@@ -51,7 +51,7 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
-    d = result.decide_length(t, kept, progress=False, start=start)
+    d = result.decide_length(t, kept, progress=False, start=start, patience=0)
     its = [c[0] for c in d["curve"]]
     assert its[0] == 0 and its[-1] == t.cfg.protocol.refine_max_iterations
     assert d["iterations"] == min(d["curve"], key=lambda c: c[1])[0]
@@ -60,7 +60,7 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     m0, m_min = d["curve"][0][1], d["heldout_mse"]
     assert m0 > 1.05 * m_min           # the curve falls: a share of it is a real choice
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 0.5)
-    h = result.decide_length(t, kept, progress=False, start=start)
+    h = result.decide_length(t, kept, progress=False, start=start, patience=0)
     # the same solver and checks (PDHG's sums run in thread order: last bits differ)
     np.testing.assert_allclose(np.asarray(h["curve"]), np.asarray(d["curve"]), rtol=1e-6)
     m0, m_min = h["curve"][0][1], h["heldout_mse"]
@@ -80,6 +80,35 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     # (the voxelizer's scatter-adds sum in thread order: two calls differ in the last bits)
     np.testing.assert_allclose(result.field_volume(t, g), vol, rtol=1e-5,
                                atol=1e-6 * float(np.abs(vol).max()))
+
+
+def test_the_length_decision_stops_patience_checks_after_its_last_minimum(trained,
+                                                                        monkeypatch):
+    """With ``patience`` P the decision's curve is the full curve's beginning, ending P
+    checks after its last new minimum (or at the cap); where the full curve's minimum lies
+    in it, the length is the full decision's. Without ``patience`` it is ``PATIENCE``."""
+    from mi_grg.training import result
+    t = trained
+    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    start = result.field_volume(t, kept)
+    monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
+    full = result.decide_length(t, kept, progress=False, start=start, patience=0)
+    mse = [m for _, m in full["curve"]]
+    assert any(b >= a for a, b in zip(mse, mse[1:]))   # not falling throughout: P can stop it
+    lengths = {}
+    for p in (1, 2, 3):
+        d = result.decide_length(t, kept, progress=False, start=start, patience=p)
+        n = lengths[p] = len(d["curve"])
+        # the same solver and checks (PDHG's sums run in thread order: last bits differ)
+        np.testing.assert_allclose(np.asarray(d["curve"]), np.asarray(full["curve"][:n]),
+                                   rtol=1e-6)
+        best = min(range(n), key=lambda i: d["curve"][i][1])
+        assert n - 1 - best == p or d["curve"][-1][0] == full["curve"][-1][0]
+        if min(mse[:n]) == min(mse):
+            assert d["iterations"] == full["iterations"]
+    assert lengths[1] < len(full["curve"]) and lengths[1] <= lengths[2] <= lengths[3]
+    monkeypatch.setattr(result, "PATIENCE", 1)
+    assert len(result.decide_length(t, kept, progress=False, start=start)["curve"]) == lengths[1]
 
 
 def test_fit_to_volume_recovers_a_field_from_a_perturbed_start(tiny_case):
