@@ -28,15 +28,12 @@ import mi_grg  # noqa: F401  (selects the variant)
 
 def with_patience(curve: list, patience: int) -> tuple:
     """(the curve's minimum, its iteration, the last iteration run) when the decision
-    stops after ``patience`` checks without a new minimum (0: the whole curve)."""
-    best, stop = 0, len(curve) - 1
-    for i in range(1, len(curve)):
-        if curve[i][1] < curve[best][1]:
-            best = i
-        elif patience and i - best >= patience:
-            stop = i
-            break
-    return curve[best][1], curve[best][0], curve[stop][0]
+    stops as ``mi_grg.training.result.past_patience`` says (0: the whole curve)."""
+    from mi_grg.training.result import past_patience
+    stop = next((i for i in range(1, len(curve)) if past_patience(curve[:i + 1], patience)),
+                len(curve) - 1)
+    best = min(curve[:stop + 1], key=lambda c: c[1])
+    return best[1], best[0], curve[stop][0]
 
 
 def decide_again(out: Path, case_name: str) -> dict:
@@ -63,7 +60,7 @@ def decide_again(out: Path, case_name: str) -> dict:
                            "seconds": d["seconds"]}
             print(f"  {case_name} {name}: length {d['iterations']}, {d['seconds']:.1f} s",
                   flush=True)
-    chosen = min(forms, key=lambda f: with_patience(forms[f]["curve"], 0)[0])
+    chosen = min(forms, key=lambda f: min(m for _, m in forms[f]["curve"]))
     recorded = "anchored" if refine["anchor"]["anchored"] else "plain"
     return {"case": case_name, "n": case.geometry.nVoxel[0], "forms": forms,
             "recorded": {"form": recorded, "iterations": refine["iterations"]},

@@ -154,7 +154,7 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start)
     cap = int(cfg.refine_max_iterations)
     patience = PATIENCE if patience is None else int(patience)
-    curve, best = [(0, held_mse(start))], 0
+    curve = [(0, held_mse(start))]
     desc = f"refine: its length ({'anchored' if anchored else 'plain'})"
     with tqdm(total=cap, desc=desc, disable=not progress, leave=False) as bar:
         for it in range(1, cap + 1):
@@ -163,9 +163,7 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
             if it % CHECK_EVERY == 0 or it == cap:
                 x = np.asarray(solver.x.numpy(), np.float32).reshape(geo.nVoxel)
                 curve.append((it, held_mse(x)))
-                if curve[-1][1] < curve[best][1]:
-                    best = len(curve) - 1
-                elif patience and len(curve) - 1 - best >= patience:
+                if past_patience(curve, patience):
                     break
     best_mse = min(m for _, m in curve)
     # the residual's tail flattens while the grid takes on voxel-scale detail that no
@@ -176,6 +174,13 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
             "seconds": time.perf_counter() - t0}
+
+
+def past_patience(curve: list, patience: int) -> bool:
+    """Whether a length decision's curve [(iteration, held-out MSE)] has run ``patience``
+    checks past its (first) minimum (0: never)."""
+    best = min(range(len(curve)), key=lambda i: curve[i][1])
+    return bool(patience) and len(curve) - 1 - best >= patience
 
 
 def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, decider,
