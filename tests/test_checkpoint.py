@@ -132,6 +132,33 @@ def test_checkpoint_of_another_config_or_no_checkpoint_is_a_clear_error(tiny_cas
                 progress=False, resume=True)
 
 
+def test_a_resume_under_another_automatic_rule_is_refused(tiny_case, tmp_path, crash_after,
+                                                            monkeypatch):
+    """An interrupted run whose iteration count was automatic resumes while the rule gives
+    the count it started with; once the rule gives another (new code), resuming would finish
+    one count's schedule with another's: the trainer refuses, naming the field and both
+    counts, and the runner starts the run afresh (``lab.staleness.resumes``)."""
+    import mi_grg.training.checkpoint as ck
+    import mi_grg.training.schedule as schedule
+    from mi_grg.lab.staleness import resumes
+    opts = dict(seed=2, n_points=200, max_gaussians=800, checkpoint_every=10, holdout_every=3)
+    cfg = make_config("gr", **opts)
+    assert cfg.schedule.iterations is None and cfg.schedule.extent is None
+    crash_after(Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False), 12)
+    ckpt = tmp_path / "checkpoint.npz"
+    assert resumes("gr", opts, ckpt, None)
+    assert Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False,
+                   resume=True).state.iteration == 10
+    rule = ck.iterations_for_size
+    for module in (ck, schedule):
+        monkeypatch.setattr(module, "iterations_for_size", lambda n: rule(n) + 100)
+    then = rule(max(tiny_case.geometry.nVoxel))
+    with pytest.raises(ValueError, match=rf"iterations \(automatic: {then} then, "
+                                         rf"{then + 100} now\)"):
+        Trainer(tiny_case, cfg, out_dir=tmp_path, progress=False, resume=True)
+    assert not resumes("gr", opts, ckpt, None)
+
+
 # The bit-for-bit resume checks: a run long enough to densify after the interruption and
 # to end on every view (the returned state is the last one).
 EXACT = dict(iterations=70, seed=2, n_points=200, max_gaussians=800, eval_every=100,

@@ -11,7 +11,7 @@ File layout (one ``.npz``; the same as before this module existed, so older file
 load): ``raw__<key>`` / ``kept__<key>`` parameter arrays, ``kept_density_scale``,
 ``graph_positions`` [N, 3], ``adam_m__<group>`` / ``adam_v__<group>`` [N, C],
 ``dens_grad`` / ``dens_count`` [N] and ``meta`` (JSON: iteration, rng, log, stopper,
-stopped_by, seconds, wall_seconds, config, adam_steps, time_plan).
+stopped_by, seconds, wall_seconds, config, adam_steps, time_plan, automatic).
 """
 from __future__ import annotations
 
@@ -24,7 +24,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_grg.training.config import AFTER_TRAINING, AUTO_FIELDS, BOOKKEEPING, TrainConfig
+from mi_grg.training.config import (AFTER_TRAINING, AUTO_FIELDS, BOOKKEEPING, TRAIN_EXTENT,
+                                    TrainConfig, iterations_for_size)
 
 #: The file name inside a run's output folder.
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -101,10 +102,35 @@ def _atomic_savez(path: Path, **arrays) -> None:
     os.replace(tmp, path)  # never leaves a half-written checkpoint behind
 
 
+def resolved_automatic(cfg: TrainConfig, n: int) -> dict:
+    """What this code resolves ``cfg``'s automatic iteration count and extent to at grid
+    size n = max(nVoxel) (only the fields left automatic; a time_budget plans its own
+    count, which its checkpoint keeps in ``time_plan``)."""
+    out = {}
+    if cfg.schedule.iterations is None and cfg.run.time_budget is None:
+        out["iterations"] = iterations_for_size(int(n))
+    if cfg.schedule.extent is None:
+        out["extent"] = TRAIN_EXTENT
+    return out
+
+
+def automatic_changes(meta: dict, cfg: TrainConfig) -> list:
+    """The automatic fields that a checkpoint's run resolved otherwise than this code
+    would resolve ``cfg``'s (a rule changed between the run's start and its resume), as
+    "name (then -> now)"; [] for checkpoints that record none (older code)."""
+    then = meta.get("automatic")
+    if not then:
+        return []
+    now = resolved_automatic(cfg, then["n"])
+    return [f"{k} (automatic: {then[k]} then, {v} now)" for k, v in sorted(now.items())
+            if k in then and then[k] != v]
+
+
 def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
-                    cfg: TrainConfig) -> None:
+                    cfg: TrainConfig, n: int) -> None:
     """Write ``state`` and the state_dict() of ``optimizer`` (Adam), ``densifier``
-    (PGADensifier) and ``stopper`` (EarlyStopper) to ``path`` (atomically)."""
+    (PGADensifier) and ``stopper`` (EarlyStopper) to ``path`` (atomically); ``n`` =
+    max(nVoxel) records what the automatic fields resolved to (``automatic_changes``)."""
     arrays = {f"raw__{k}": v for k, v in _raw_to_numpy(state.raw).items()}
     if state.kept_raw is not None:
         arrays.update({f"kept__{k}": v for k, v in _raw_to_numpy(state.kept_raw).items()})
@@ -126,7 +152,8 @@ def save_checkpoint(path, state: TrainState, optimizer, densifier, stopper,
             "stopper": stop, "stopped_by": state.stopped_by,
             "seconds": state.seconds, "wall_seconds": state.wall_seconds,
             "config": cfg.to_flat(), "time_plan": state.time_plan,
-            "adam_steps": {n: st["step"] for n, st in opt.items()}}
+            "adam_steps": {g: st["step"] for g, st in opt.items()},
+            "automatic": {"n": int(n), **resolved_automatic(cfg, n)}}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     _atomic_savez(Path(path), **arrays)
 
@@ -135,14 +162,21 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
     """Read a checkpoint written by ``save_checkpoint`` (of this or an earlier version):
     restores ``optimizer``, ``densifier`` and ``stopper`` through load_state_dict() and
     returns the ``TrainState``. A checkpoint of another config is an error that names the
-    differing fields (resuming must continue the same run); ``BOOKKEEPING`` and
-    ``AFTER_TRAINING`` fields may differ."""
+    differing fields (resuming must continue the same run; ``BOOKKEEPING`` and
+    ``AFTER_TRAINING`` fields may differ), and so is one whose automatic fields this code
+    resolves otherwise (``automatic_changes``)."""
     with _open(path) as f:
         meta = _meta(f, path)
         changed = config_changes(meta["config"], cfg)
         if changed:
             raise ValueError(f"checkpoint {path} was made with a different config "
                              f"(differs in {changed}); resume with the same options")
+        changed = automatic_changes(meta, cfg)
+        if changed:
+            raise ValueError(f"checkpoint {path} was made by code that resolved the automatic "
+                             f"settings otherwise: {', '.join(changed)}; start the run afresh "
+                             "(without its checkpoint), or resume it with the code that "
+                             "started it")
         raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
         kept = (_raw_from_numpy({k: f[f"kept__{k}"] for k in _RAW_TYPES})
                 if "kept__positions" in f.files else None)
@@ -181,9 +215,11 @@ def config_changes(recorded: dict, cfg: TrainConfig) -> list:
 
 
 def checkpoint_config_changes(path, cfg: TrainConfig) -> list:
-    """``config_changes`` of the checkpoint at ``path`` against ``cfg`` ([]: it resumes)."""
+    """``config_changes`` and ``automatic_changes`` of the checkpoint at ``path`` against
+    ``cfg`` ([]: it resumes)."""
     with _open(path) as f:
-        return config_changes(_meta(f, path)["config"], cfg)
+        meta = _meta(f, path)
+        return config_changes(meta["config"], cfg) + automatic_changes(meta, cfg)
 
 
 def checkpoint_time_plan(path) -> dict | None:

@@ -17,9 +17,10 @@ class RunFiles:
             self.out.mkdir(parents=True, exist_ok=True)
         self.checkpoint_path = self.out / CHECKPOINT_NAME if self.out is not None else None
 
-    def save_checkpoint(self, state, optimizer, densifier, stopper, cfg) -> None:
+    def save_checkpoint(self, state, optimizer, densifier, stopper, cfg, n: int) -> None:
         if self.checkpoint_path is not None:
-            save_checkpoint(self.checkpoint_path, state, optimizer, densifier, stopper, cfg)
+            save_checkpoint(self.checkpoint_path, state, optimizer, densifier, stopper, cfg,
+                            n)
 
     def write_final(self, log: list, returned: int) -> None:
         """train_log.csv and train_log.png (the returned iteration marked)."""

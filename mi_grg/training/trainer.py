@@ -447,7 +447,7 @@ class Trainer:
         if self.checkpoint_path is not None:
             self.state.wall_seconds = time.perf_counter() - self._wall_start
             self.files.save_checkpoint(self.state, self.optimizer, self.densifier,
-                                       self.stopper, self.cfg)
+                                       self.stopper, self.cfg, max(self.case.geometry.nVoxel))
 
     def _finish(self) -> dict:
         """Why the run ended, the state to return (the last one once the held-out views
