@@ -117,7 +117,8 @@ def resolved_automatic(cfg: TrainConfig, n: int) -> dict:
 def automatic_changes(meta: dict, cfg: TrainConfig) -> list:
     """The automatic fields that a checkpoint's run resolved otherwise than this code
     would resolve ``cfg``'s (a rule changed between the run's start and its resume), as
-    "name (then -> now)"; [] for checkpoints that record none (older code)."""
+    "name (automatic: THEN then, NOW now)"; [] for checkpoints that record none (older
+    code)."""
     then = meta.get("automatic")
     if not then:
         return []
