@@ -73,7 +73,7 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     field = result._averaged(t, t.field_gaussians())
     monkeypatch.setattr(result, "decide_length", lambda *a, **k: {
         "iterations": 5, "at_cap": True, "curve": [(0, 1.0), (5, 0.5)], "heldout_mse": 0.5,
-        "heldout_mse_chosen": 0.5, "seconds": 0.0})
+        "heldout_mse_chosen": 0.5, "norm_A": None, "seconds": 0.0})
     vol, g, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert info["at_cap"] and "a 4x higher cap measured no better" in capsys.readouterr().err
@@ -109,6 +109,35 @@ def test_the_length_decision_stops_patience_checks_after_its_last_minimum(traine
     assert lengths[1] < len(full["curve"]) and lengths[1] <= lengths[2] <= lengths[3]
     monkeypatch.setattr(result, "PATIENCE", 1)
     assert len(result.decide_length(t, kept, progress=False, start=start)["curve"]) == lengths[1]
+
+
+def test_the_two_length_decisions_share_one_power_iteration(trained, monkeypatch):
+    """Both forms' decisions run PDHG on the same fitted views: the first one's ||A||
+    serves the second, which then decides as it would with its own power iteration."""
+    from mi_grg.classical import pdhg as pdhg_module
+    from mi_grg.training import result
+    t = trained
+    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    start = result.field_volume(t, kept)
+    own = result.decide_length(t, kept, progress=False, anchored=False, start=start)
+    calls = []
+    norm = pdhg_module.operator_norm
+    monkeypatch.setattr(pdhg_module, "operator_norm",
+                        lambda *a, **k: calls.append(1) or norm(*a, **k))
+    given = result.decide_length(t, kept, progress=False, anchored=False, start=start,
+                                 norm_A=own["norm_A"])
+    assert not calls and given["norm_A"] == own["norm_A"] > 0
+    assert given["iterations"] == own["iterations"]
+    np.testing.assert_allclose(np.asarray(given["curve"]), np.asarray(own["curve"]),
+                               rtol=1e-6)
+    monkeypatch.setattr(t.cfg.protocol, "refine_anchor", "auto")
+    monkeypatch.setattr(t.cfg.protocol, "refine_output", "voxels")
+    field = result._averaged(t, t.field_gaussians())
+    vol, _, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
+                                       progress=False)
+    assert set(info["anchor"]["curves"]) == {"anchored", "plain"}
+    # one power iteration for the two decisions, one for the final refinement on every view
+    assert len(calls) == (2 if info["iterations"] else 1)
 
 
 def test_fit_to_volume_recovers_a_field_from_a_perturbed_start(tiny_case):

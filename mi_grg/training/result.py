@@ -122,16 +122,18 @@ def anchored_data(trainer, g: Gaussians, vol: np.ndarray, views) -> np.ndarray:
 
 
 def decide_length(trainer, kept: Gaussians, progress: bool = True,
-                  anchored: bool = True, start=None, patience: int | None = None) -> dict:
+                  anchored: bool = True, start=None, patience: int | None = None,
+                  norm_A: float | None = None) -> dict:
     """The refinement's length from the kept field (module docstring, step 2): PDHG on the
     fitted views' anchored data (``anchored``, else the measured data), the held-out
     residual every ``CHECK_EVERY`` iterations, from ``start`` (the kept field's
     ``field_volume``; None: made here). The length is the first check at which the
     residual has made the share ``refine_fall`` of its fall from the start to the curve's
     minimum (1: the minimum). The curve stops ``patience`` checks after its last new
-    minimum (None: ``PATIENCE``; 0: at the cap).
+    minimum (None: ``PATIENCE``; 0: at the cap). ``norm_A``: the fitted views' ||A|| from
+    an earlier decision (None: PDHG's power iteration).
     Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "heldout_mse"
-    (the curve's minimum), "heldout_mse_chosen" (at "iterations"), "seconds"}."""
+    (the curve's minimum), "heldout_mse_chosen" (at "iterations"), "norm_A", "seconds"}."""
     from mi_grg.classical.pdhg import PDHG
     from mi_grg.core.joseph import forward_project
     from tqdm import tqdm
@@ -151,7 +153,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
         r = forward_project(x, geo, geo.angles[held]) - b_held
         return float(np.mean(np.square(r, dtype=np.float64)))
 
-    solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start)
+    solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start,
+                  norm_A=norm_A)
     cap = int(cfg.refine_max_iterations)
     patience = PATIENCE if patience is None else int(patience)
     curve = [(0, held_mse(start))]
@@ -173,7 +176,7 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     length, chosen = next((it, m) for it, m in curve if m <= target)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
-            "seconds": time.perf_counter() - t0}
+            "norm_A": solver.norm_A, "seconds": time.perf_counter() - t0}
 
 
 def past_patience(curve: list, patience: int) -> bool:
@@ -192,8 +195,11 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     cfg = trainer.cfg.protocol
     forms = {"auto": (True, False), "on": (True,), "off": (False,)}[cfg.refine_anchor]
     start = field_volume(decider, kept)     # once for both forms
-    lengths = {a: decide_length(decider, kept, progress, anchored=a, start=start)
-               for a in forms}
+    lengths, norm_A = {}, None
+    for a in forms:     # both forms run on the same views: one power iteration serves
+        lengths[a] = decide_length(decider, kept, progress, anchored=a, start=start,
+                                   norm_A=norm_A)
+        norm_A = lengths[a]["norm_A"]
     # ties keep the anchor (listed first)
     anchored = min(forms, key=lambda a: lengths[a]["heldout_mse"])
     length = lengths[anchored]
