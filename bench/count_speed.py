@@ -25,18 +25,17 @@ OUT = ROOT / "docs" / "bench" / "count_speed"
 
 def measure(data: str, states: dict, reps: int, seed: int = 0) -> dict:
     import numpy as np
+    import mi_grg  # noqa: F401  (first: it points Dr.Jit at a suitable LLVM, selects the variant)
     import drjit as dr
-    import mi_grg  # noqa: F401  (selects the variant)
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.projector import project_dr
     from mi_grg.data.dataset import load_case
-    from mi_grg.training.checkpoint import _RAW_TYPES, _raw_from_numpy
+    from mi_grg.training.checkpoint import raw_parameters
     from mi_grg.training.config import TRAIN_EXTENT
     geo = load_case(data).geometry
     raws = {}
     for label, path in states.items():
-        with np.load(path) as f:
-            raws[label] = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
+        raws[label] = raw_parameters(path)
     rng = np.random.default_rng(seed)
     times = {label: [] for label in raws}
     for rep in range(reps + 1):

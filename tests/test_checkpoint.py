@@ -117,6 +117,32 @@ def test_checkpoint_of_earlier_code_still_resumes(tiny_case, tmp_path):
     assert "budget" in summary["stopped_by"]
 
 
+def test_raw_parameters_reads_a_checkpoints_states_checked(tmp_path):
+    """raw_parameters gives the file's last and kept states as Dr.Jit arrays (compared with
+    numpy's reading of the same file), None for a kept state the file lacks, and refuses
+    what a resume refuses."""
+    from mi_grg.training.checkpoint import raw_parameters
+    with np.load(OLD_CHECKPOINT) as f:
+        arrays = dict(f)
+    for which in ("raw", "kept"):
+        got = raw_parameters(OLD_CHECKPOINT, which)
+        assert set(got) == {"positions", "raw_scales", "raw_rotations", "raw_densities"}
+        for k, v in got.items():
+            a = np.stack([np.asarray(c) for c in v], -1) if dr.depth_v(v) > 1 else np.asarray(v)
+            np.testing.assert_array_equal(a, arrays[f"{which}__{k}"])
+    no_kept = tmp_path / "no_kept.npz"
+    np.savez(no_kept, **{k: v for k, v in arrays.items() if not k.startswith("kept")})
+    assert raw_parameters(no_kept, "kept") is None
+    assert raw_parameters(no_kept)["raw_densities"].shape == (arrays["raw__raw_densities"].size,)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **{**arrays, "raw__raw_densities": np.full_like(arrays["raw__raw_densities"],
+                                                                  np.nan)})
+    with pytest.raises(ValueError, match="raw__raw_densities"):
+        raw_parameters(bad)
+    with pytest.raises(ValueError, match="which must be"):
+        raw_parameters(OLD_CHECKPOINT, "best")
+
+
 def test_checkpoint_of_another_config_or_no_checkpoint_is_a_clear_error(tiny_case, tmp_path):
     shutil.copy(OLD_CHECKPOINT, tmp_path / "checkpoint.npz")
     cfg = make_config("gr", **{**OLD_OPTIONS, "graph_s": 0.5, "k": 5})

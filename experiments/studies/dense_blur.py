@@ -54,13 +54,13 @@ def heldout(name: str, variant: str) -> None:
     from mi_grg.core.gaussians import Gaussians
     from mi_grg.core.voxelizer import voxelize
     from mi_grg.evaluation.metrics import psnr_3d
-    from mi_grg.training.checkpoint import _RAW_TYPES, _raw_from_numpy
+    from mi_grg.training.checkpoint import raw_parameters
     case = _case(name)
     run = _root() / "runs" / name / variant
     info = json.loads((run / "metrics.json").read_text())["method_info"]
     held = info["held_out_views"]
+    raw = raw_parameters(run / "checkpoint.npz", "kept")
     with np.load(run / "checkpoint.npz") as z:
-        raw = _raw_from_numpy({k: z[f"kept__{k}"] for k in _RAW_TYPES})
         scale = mi.Float(z["kept_density_scale"]) if "kept_density_scale" in z.files else None
     vol = voxelize(Gaussians.from_raw(raw), case.geometry, extent=info["extent"],
                    density_scale=scale)

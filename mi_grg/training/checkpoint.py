@@ -178,9 +178,7 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
                              f"settings otherwise: {', '.join(changed)}; start the run afresh "
                              "(without its checkpoint), or resume it with the code that "
                              "started it")
-        raw = _raw_from_numpy({k: f[f"raw__{k}"] for k in _RAW_TYPES})
-        kept = (_raw_from_numpy({k: f[f"kept__{k}"] for k in _RAW_TYPES})
-                if "kept__positions" in f.files else None)
+        raw, kept = _raw_block(f, "raw"), _raw_block(f, "kept")
         opt_state = {}
         for name, step in meta["adam_steps"].items():
             opt_state[name] = {"m": f[f"adam_m__{name}"], "v": f[f"adam_v__{name}"],
@@ -221,6 +219,23 @@ def checkpoint_config_changes(path, cfg: TrainConfig) -> list:
     with _open(path) as f:
         meta = _meta(f, path)
         return config_changes(meta["config"], cfg) + automatic_changes(meta, cfg)
+
+
+def raw_parameters(path, which: str = "raw") -> dict | None:
+    """The raw parameters (``Gaussians.from_raw``'s input) of a checkpoint, checked as a
+    resume checks them: ``which`` "raw" (the last state) or "kept" (the early stop's kept
+    state; None where the checkpoint holds none)."""
+    if which not in ("raw", "kept"):
+        raise ValueError(f"which must be 'raw' or 'kept', got {which!r}")
+    with _open(path) as f:
+        return _raw_block(f, which)
+
+
+def _raw_block(f, prefix: str) -> dict | None:
+    """The parameter block ``prefix`` ("raw", "kept") of an open checkpoint; None if absent."""
+    if f"{prefix}__positions" not in f.files:
+        return None
+    return _raw_from_numpy({k: f[f"{prefix}__{k}"] for k in _RAW_TYPES})
 
 
 def checkpoint_time_plan(path) -> dict | None:
