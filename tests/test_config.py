@@ -63,6 +63,8 @@ def test_file_round_trip_and_precedence(tmp_path):
     ('<training><integer name="keep_state" value="1"/></training>', "string"),
     ('<training><float name="refine_fall" value="0"/></training>', "refine_fall must be a share"),
     ('<training><float name="refine_fall" value="1.5"/></training>', "refine_fall must be a share"),
+    ('<training><float name="refine_tol" value="-0.01"/></training>', "must be >= 0: refine_tol"),
+    ('<training><float name="refine_tol" value="1"/></training>', "refine_tol must be a share"),
     ('<training><float name="fit_rate_scale" value="0"/></training>', "fit_rate_scale must be"),
     ('<training><float name="fit_rate_scale" value="inf"/></training>', "fit_rate_scale|finite"),
 ])

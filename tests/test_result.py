@@ -111,6 +111,30 @@ def test_the_length_decision_stops_patience_checks_after_its_last_minimum(traine
     assert len(result.decide_length(t, kept, progress=False, start=start)["curve"]) == lengths[1]
 
 
+def test_the_length_within_a_tolerance_of_the_minimum(trained, monkeypatch):
+    """refine_tol: the length is the first check whose held-out residual is within that
+    share of the curve's minimum (the same curve as without it); a tolerance above the
+    whole fall means no refinement."""
+    from mi_grg.training import result
+    t = trained
+    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    start = result.field_volume(t, kept)
+    monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
+    d = result.decide_length(t, kept, progress=False, start=start, patience=0)
+    m0, m_min = d["curve"][0][1], d["heldout_mse"]
+    tol = 0.5 * (m0 / m_min - 1.0)          # half the fall, in shares of the minimum
+    monkeypatch.setattr(t.cfg.protocol, "refine_tol", tol)
+    h = result.decide_length(t, kept, progress=False, start=start, patience=0)
+    np.testing.assert_allclose(np.asarray(h["curve"]), np.asarray(d["curve"]), rtol=1e-6)
+    before = [m for it, m in h["curve"] if it < h["iterations"]]
+    assert h["heldout_mse_chosen"] <= (1 + tol) * h["heldout_mse"]
+    assert before and all(m > (1 + tol) * h["heldout_mse"] for m in before)
+    assert 0 < h["iterations"] < d["iterations"]
+    monkeypatch.setattr(t.cfg.protocol, "refine_tol", 1.01 * (m0 / m_min - 1.0))
+    assert result.decide_length(t, kept, progress=False, start=start,
+                                patience=0)["iterations"] == 0
+
+
 def test_the_two_length_decisions_share_one_power_iteration(trained, monkeypatch):
     """Both forms' decisions run PDHG on the same fitted views: the first one's ||A||
     serves the second, which then decides as it would with its own power iteration."""

@@ -44,7 +44,7 @@ WINDOW_KEYS = ("holdout_until", "holdout_catch_up")
 #: Options of the TV refinement and the fit back (mi_grg.training.result): without the
 #: refinement (refine = "none": r2, gr-paper) they change nothing.
 REFINE_KEYS = ("refine_lam", "refine_max_iterations", "refine_anchor", "refine_fall",
-               "refine_output", "fit_iterations", "fit_rate_scale")
+               "refine_tol", "refine_output", "fit_iterations", "fit_rate_scale")
 
 
 def stale_keys(m: dict) -> list:

@@ -38,7 +38,7 @@ CHECKPOINT_NAME = "checkpoint.npz"
 ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget": None,
                "holdout_catch_up": False, "stop_noise": 0.0, "init": "fdk",
                "frozen_step": False, "refine": "none", "refine_anchor": "on",
-               "refine_fall": 1.0, "fit_rate_scale": 1.0,
+               "refine_fall": 1.0, "refine_tol": 0.0, "fit_rate_scale": 1.0,
                # before it, the schedule stretched to the run's count: the same as today's
                # None wherever the count was at most the rule's (staleness._auto_changed)
                "horizon": None,

@@ -46,7 +46,7 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 #: Fields that act only after training (on the returned state): a resume may change them,
 #: since no checkpointed state depends on them, but a finished run is stale for them.
 AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
-                  "refine_anchor", "refine_fall", "fit_iterations", "fit_rate_scale",
+                  "refine_anchor", "refine_fall", "refine_tol", "fit_iterations", "fit_rate_scale",
                   "voxel_average")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
@@ -241,6 +241,9 @@ class Protocol:
                                    # made this share of its fall from the start to its
                                    # minimum (1: at the minimum; why: docs/benchmarks.md,
                                    # "The refinement's weight and length")
+    refine_tol: float = 0.0        # ... or where it is first within this share of its
+                                   # minimum (0: at the minimum), whichever comes first
+                                   # (docs/benchmarks.md, "The refinement's tolerance")
     refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
                                    # the Gaussians, vol_pred is their voxelisation;
                                    # "voxels": vol_pred is the refined grid
@@ -372,6 +375,8 @@ def _validate(c: dict) -> None:
         raise ConfigError("refine_max_iterations must be >= 1")
     if not 0.0 < c["refine_fall"] <= 1.0:
         raise ConfigError(f"refine_fall must be a share in (0, 1], got {c['refine_fall']}")
+    if not 0.0 <= c["refine_tol"] < 1.0:
+        raise ConfigError(f"refine_tol must be a share in [0, 1), got {c['refine_tol']}")
     if not 0.0 < c["fit_rate_scale"] < math.inf:
         raise ConfigError(f"fit_rate_scale must be a finite factor > 0, got "
                           f"{c['fit_rate_scale']}")

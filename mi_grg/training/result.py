@@ -20,7 +20,9 @@ it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
    count with the lowest held-out residual (0 included: no refinement), within
    ``refine_max_iterations`` (the record says when that cap binds; the curve stops
    ``PATIENCE`` checks after its last new minimum); ``refine_fall`` < 1
-   takes the first count at which that share of the residual's fall is made. That many
+   takes the first count at which that share of the residual's fall is made,
+   ``refine_tol`` > 0 the first within that share of the residual's minimum (the earlier
+   of the two; a minimum within the tolerance of the start: no refinement). That many
    iterations then run from the returned field on every view. Without held-out views a
    decision run supplies the kept state (``decision_run``).
    The anchor helps where a voxel grid misses what the field resolves (thin needles, sharp
@@ -129,7 +131,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     residual every ``CHECK_EVERY`` iterations, from ``start`` (the kept field's
     ``field_volume``; None: made here). The length is the first check at which the
     residual has made the share ``refine_fall`` of its fall from the start to the curve's
-    minimum (1: the minimum). The curve stops ``patience`` checks after its last new
+    minimum (1: the minimum), or is within the share ``refine_tol`` of that minimum,
+    whichever comes first. The curve stops ``patience`` checks after its last new
     minimum (None: ``PATIENCE``; 0: at the cap). ``norm_A``: the fitted views' ||A|| from
     an earlier decision (None: PDHG's power iteration).
     Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "heldout_mse"
@@ -172,7 +175,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     # the residual's tail flattens while the grid takes on voxel-scale detail that no
     # view checks: stopping once most of the fall is made avoids it
     # (never below the minimum: rounding in the difference must not skip it)
-    target = max(curve[0][1] - float(cfg.refine_fall) * (curve[0][1] - best_mse), best_mse)
+    target = max(curve[0][1] - float(cfg.refine_fall) * (curve[0][1] - best_mse), best_mse,
+                 (1.0 + float(cfg.refine_tol)) * best_mse)
     length, chosen = next((it, m) for it, m in curve if m <= target)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
@@ -209,7 +213,7 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
             "heldout_mse": {"start": length["curve"][0][1],
                             "refined": length["heldout_mse_chosen"],
                             "minimum": length["heldout_mse"]},
-            "fall": cfg.refine_fall,
+            "fall": cfg.refine_fall, "tol": cfg.refine_tol,
             "curve": length["curve"],
             "decision_seconds": sum(x["seconds"] for x in lengths.values()),
             "anchor": {"rule": cfg.refine_anchor, "anchored": anchored,
