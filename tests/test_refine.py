@@ -209,12 +209,12 @@ def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkey
     seen = {}
     real = result.decide_length
 
-    def spy(trainer, kept, progress=True, anchored=True, start=None):
+    def spy(trainer, kept, progress=True, anchored=True, start=None, norm_A=None):
         seen.update(held=list(trainer.held_idx), kept=result.field_volume(trainer, kept))
         # the start is the kept field's voxelisation (to the scatter-adds' thread order)
         np.testing.assert_allclose(start, seen["kept"], rtol=1e-5,
                                    atol=1e-6 * float(np.abs(seen["kept"]).max()))
-        return real(trainer, kept, progress, anchored, start)
+        return real(trainer, kept, progress, anchored, start, norm_A=norm_A)
     monkeypatch.setattr(result, "decide_length", spy)
     t = Trainer(tiny_case, make_config("gr", holdout_every=0, **opts), progress=False)
     t.run()

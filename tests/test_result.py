@@ -44,13 +44,14 @@ def test_anchored_data_give_the_start_the_fields_own_residual(trained):
 
 def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkeypatch):
     """The length is the first check where the held-out residual has made the share
-    refine_fall of its fall to the curve's minimum (1: the minimum itself), from the same
+    refine_fall of its fall to the curve's minimum (1, refine_tol 0: the minimum itself), from the same
     curve; reaching the cap is said."""
     from mi_grg.training import result
     t = trained
     kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
+    monkeypatch.setattr(t.cfg.protocol, "refine_tol", 0.0)
     d = result.decide_length(t, kept, progress=False, start=start, patience=0)
     its = [c[0] for c in d["curve"]]
     assert its[0] == 0 and its[-1] == t.cfg.protocol.refine_max_iterations

@@ -241,9 +241,9 @@ class Protocol:
                                    # made this share of its fall from the start to its
                                    # minimum (1: at the minimum; why: docs/benchmarks.md,
                                    # "The refinement's weight and length")
-    refine_tol: float = 0.0        # ... or where it is first within this share of its
+    refine_tol: float = 0.005      # ... or where it is first within this share of its
                                    # minimum (0: at the minimum), whichever comes first
-                                   # (docs/benchmarks.md, "The refinement's tolerance")
+                                   # (why: docs/benchmarks.md, "The refinement's tolerance")
     refine_output: str = "gaussians"  # "gaussians": the refined volume is fitted back into
                                    # the Gaussians, vol_pred is their voxelisation;
                                    # "voxels": vol_pred is the refined grid
