@@ -12,11 +12,16 @@ Two parts:
   per case, form and weight the held-out residual and the grid's 3-D PSNR every 5
   iterations), the default's form and weight, each t of ``TOLS``; reported on both sets.
 * ``--cases ... --tol T``: gr's export (the package's result steps) from each case's trained
-  state, with the defaults and with ``refine_tol=T``: the 3-D PSNR of what the run exports.
+  state, with ``refine_tol`` 0 (the default before it) and T: the 3-D PSNR of what the run
+  exports.
+* ``--runs KEY SET RUN_0 RUN_T``: the same comparison from two finished runs of one trained
+  state (a 128^3 run and its result steps re-made with ``--resume --option refine_tol=T``).
 
     python experiments/studies/refine_tol.py --replay
     MI_GRG_DATA=/work/shared/data python experiments/studies/refine_tol.py \\
         --cases mni152 needles7 shells7 --tol 0.005 --states /tmp/tol_states --data /tmp/tol_data
+    python experiments/studies/refine_tol.py --runs mni152_128 confirmation \
+        results/cpu128/table1/mni152/gr /tmp/mni128_tol
 
 Writes docs/bench/refine_tol.json (merged per key) and .md.
 """
@@ -83,7 +88,7 @@ def markdown(records: dict) -> str:
     if fin:
         rows += ["", "gr's export from the same trained state (3-D PSNR dB; refinement "
                  "iterations, form):", "",
-                 "| case | set | defaults | refine_tol | change |", "|---|---|---|---|---|"]
+                 "| case | set | refine_tol 0 (the earlier default) | refine_tol T | change |", "|---|---|---|---|---|"]
         gain = {}
         for key, r in fin.items():
             d, t = r["default"], r["tol"]
@@ -106,12 +111,32 @@ def _export(name: str, n: int, data: Path, states: Path, tol: float) -> dict:
                    "form": "anchored" if a.get("anchored") else "plain"}
 
 
+def _from_run(run: Path) -> dict:
+    m = json.loads((Path(run) / "metrics.json").read_text())
+    r = m["method_info"]["refine"]
+    return {"psnr": m["psnr_3d"], "iterations": r["iterations"],
+            "seconds": r["decision_seconds"] + r.get("final_seconds", 0.0)
+            + (r.get("fit") or {}).get("seconds", 0.0),
+            "form": "anchored" if r["anchor"]["anchored"] else "plain",
+            "refine_tol": r.get("tol", 0.0), "code": m["machine"]["mi_grg"]}
+
+
 def main():
     ap = state_arguments(__doc__, "refine_tol")
     ap.add_argument("--replay", action="store_true",
                     help="replay TOLS on docs/bench/refine_weight.json's curves")
     ap.add_argument("--tol", type=float, default=0.005)
+    ap.add_argument("--runs", nargs=4, metavar=("KEY", "SET", "RUN_0", "RUN_T"))
     a = ap.parse_args()
+    if a.runs:
+        key, which, run0, run_t = a.runs
+        default, tol = _from_run(Path(run0)), _from_run(Path(run_t))
+        if default["refine_tol"] != 0.0 or tol["refine_tol"] <= 0.0:
+            ap.error("RUN_0 must be made with refine_tol 0 and RUN_T with refine_tol > 0")
+        save_record(a.out, key, {"set": which, "refine_tol": tol["refine_tol"],
+                                 "default": default, "tol": tol}, markdown)
+        print(a.out.with_suffix(".md").read_text())
+        return
     if a.replay:
         save_record(a.out, "replay", replay(json.loads(CURVES.read_text())), markdown)
         print(a.out.with_suffix(".md").read_text())
