@@ -10,8 +10,9 @@ grid (what says which choice was right). Iteration 0 is the start (no refinement
 
 Rules replayed on those curves, each picking (form, weight, length):
 
-* ``default``: the package's rule (weight ``refine_lam``, the form and length of lowest
-  held-out residual, ties anchored);
+* ``default``: the package's rule when this study was made (weight ``refine_lam``, the
+  form and length of lowest held-out residual, ties anchored; ``refine_tol`` came later:
+  ``refine_tol.py`` replays it on these curves);
 * ``heldout``: the lowest held-out residual over forms, weights and lengths;
 * ``fall F``: the default's weight and form, the length where the held-out residual first
   completes the share F of its fall from the start to its minimum (``FALLS``; F = 1 is the
