@@ -16,13 +16,14 @@ it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
    model's error (at 64^3 several times the noise), and the refinement's first iterations
    fit that error instead of the data. With it, the start's residual is the field's own.
    The weight is ``refine_lam``; the length is the held-out choice: from the state kept
-   before the held-out views joined training, PDHG on the fitted views, the iteration
-   count with the lowest held-out residual (0 included: no refinement), within
+   before the held-out views joined training, PDHG on the fitted views, the first
+   iteration count whose held-out residual is within the share ``refine_tol`` of the
+   curve's lowest (0 included: no refinement; ``refine_tol`` 0: the lowest itself), within
    ``refine_max_iterations`` (the record says when that cap binds; the curve stops
-   ``PATIENCE`` checks after its last new minimum); ``refine_fall`` < 1
-   takes the first count at which that share of the residual's fall is made,
-   ``refine_tol`` > 0 the first within that share of the residual's minimum (the earlier
-   of the two; a minimum within the tolerance of the start: no refinement). That many
+   ``PATIENCE`` checks after its last new minimum). Where the residual hardly falls, its
+   minimum lies far along a flat curve on which the grid drifts toward TV's answer
+   unseen by the views; the tolerance stops before. ``refine_fall`` < 1 takes the first
+   count at which that share of the residual's fall is made, if that comes earlier. That many
    iterations then run from the returned field on every view. Without held-out views a
    decision run supplies the kept state (``decision_run``).
    The anchor helps where a voxel grid misses what the field resolves (thin needles, sharp
