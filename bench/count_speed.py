@@ -33,9 +33,7 @@ def measure(data: str, states: dict, reps: int, seed: int = 0) -> dict:
     from mi_grg.training.checkpoint import raw_parameters
     from mi_grg.training.config import TRAIN_EXTENT
     geo = load_case(data).geometry
-    raws = {}
-    for label, path in states.items():
-        raws[label] = raw_parameters(path)
+    raws = {label: raw_parameters(path) for label, path in states.items()}
     rng = np.random.default_rng(seed)
     times = {label: [] for label in raws}
     for rep in range(reps + 1):

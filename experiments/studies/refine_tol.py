@@ -6,7 +6,7 @@ the TV refinement's bias costs more than the views can see (mni152 at 64^3: the 
 grid 0.9 dB below the voxel-averaged field). ``refine_tol = t`` stops at the first check
 within the share t of the minimum, and does not refine when the start is already there.
 
-Two parts:
+Three parts:
 
 * ``--replay``: t chosen on the tuning cases' recorded curves (docs/bench/refine_weight.json:
   per case, form and weight the held-out residual and the grid's 3-D PSNR every 5
@@ -20,7 +20,7 @@ Two parts:
     python experiments/studies/refine_tol.py --replay
     MI_GRG_DATA=/work/shared/data python experiments/studies/refine_tol.py \\
         --cases mni152 needles7 shells7 --tol 0.005 --states /tmp/tol_states --data /tmp/tol_data
-    python experiments/studies/refine_tol.py --runs mni152_128 confirmation \
+    python experiments/studies/refine_tol.py --runs mni152_128 confirmation \\
         results/cpu128/table1/mni152/gr /tmp/mni128_tol
 
 Writes docs/bench/refine_tol.json (merged per key) and .md.
@@ -39,10 +39,11 @@ CURVES = ROOT / "docs" / "bench" / "refine_weight.json"
 
 
 def length_at(curve: list, tol: float) -> list:
-    """The first [iteration, held-out MSE, 3-D PSNR] within ``tol`` of the curve's minimum
-    (``mi_grg.training.result.decide_length`` with refine_fall 1)."""
-    best = min(e[1] for e in curve)
-    return next(e for e in curve if e[1] <= (1.0 + tol) * best)
+    """[iteration, 3-D PSNR] of the check ``result.curve_length`` picks on a recorded curve
+    [iteration, held-out MSE, 3-D PSNR] with refine_fall 1 and ``tol``."""
+    from mi_grg.training.result import curve_length
+    it, _ = curve_length(curve, 1.0, tol)
+    return next([e[0], e[2]] for e in curve if e[0] == it)
 
 
 def replay(curves: dict) -> dict:
@@ -54,7 +55,7 @@ def replay(curves: dict) -> dict:
         c = r["curves"][d["form"]][f"{d['lam']:g}"]
         out[key] = {"set": r["set"], "form": d["form"],
                     "default": [d["iteration"], d["psnr"]],
-                    "tol": {f"{t:g}": length_at(c, t)[::2] for t in TOLS}}
+                    "tol": {f"{t:g}": length_at(c, t) for t in TOLS}}
     return out
 
 

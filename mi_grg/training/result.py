@@ -173,15 +173,22 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
                 if past_patience(curve, patience):
                     break
     best_mse = min(m for _, m in curve)
-    # the residual's tail flattens while the grid takes on voxel-scale detail that no
-    # view checks: stopping once most of the fall is made avoids it
-    # (never below the minimum: rounding in the difference must not skip it)
-    target = max(curve[0][1] - float(cfg.refine_fall) * (curve[0][1] - best_mse), best_mse,
-                 (1.0 + float(cfg.refine_tol)) * best_mse)
-    length, chosen = next((it, m) for it, m in curve if m <= target)
+    length, chosen = curve_length(curve, cfg.refine_fall, cfg.refine_tol)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
             "norm_A": solver.norm_A, "seconds": time.perf_counter() - t0}
+
+
+def curve_length(curve, fall: float, tol: float) -> tuple:
+    """(iteration, held-out MSE) of the first check of ``curve`` [(iteration, held-out
+    MSE, ...)] that has made the share ``fall`` of the fall from its start to its minimum,
+    or is within the share ``tol`` of that minimum, whichever comes first."""
+    start, best = curve[0][1], min(c[1] for c in curve)
+    # the residual's tail flattens while the grid takes on voxel-scale detail that no
+    # view checks: stopping once most of the fall is made avoids it
+    # (never below the minimum: rounding in the difference must not skip it)
+    target = max(start - float(fall) * (start - best), best, (1.0 + float(tol)) * best)
+    return next((c[0], c[1]) for c in curve if c[1] <= target)
 
 
 def past_patience(curve: list, patience: int) -> bool:
