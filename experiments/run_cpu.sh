@@ -21,5 +21,5 @@ case " $* " in *" --dask"* | *" --jobs"*) J=() ;; esac   # a cluster, or your ow
 "$MI_GRG" experiment seeds  --suite "$SUITE" --out "$OUT" --cases shepp,needles,shell,shells,bone "${J[@]}" "$@"
 case " $* " in
   *" --dry-run "*) ;;
-  *) "$MI_GRG" report --out "$OUT" --report docs/results.md ;;
+  *) "$MI_GRG" report --out "$OUT" --report docs/results.md --record docs/cpu/runs ;;
 esac

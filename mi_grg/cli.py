@@ -272,6 +272,8 @@ def add_experiment_parser(subparsers) -> None:
     r = subparsers.add_parser("report", help="write docs/results.md from a results directory")
     r.add_argument("--out", required=True, help="results directory (as given to experiment)")
     r.add_argument("--report", default="docs/results.md", help="markdown file to write")
+    r.add_argument("--record", help="folder that keeps every finished run's metrics.json "
+                   "(OUT's are copied in); its runs that OUT lacks are counted too")
     r.set_defaults(func=cmd_report)
 
 
@@ -304,7 +306,7 @@ def cmd_experiment(args) -> int:
 
 def cmd_report(args) -> int:
     from mi_grg.lab.report import write_report
-    path = write_report(args.out, args.report)
+    path = write_report(args.out, args.report, args.record)
     print(f"wrote {path}")
     return 0
 

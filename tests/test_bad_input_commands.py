@@ -220,6 +220,15 @@ CASES = {
     "report over a file that is no report": (
         ["report", "--out", "{r}/results", "--report", "{r}/notes.txt"], _a_file,
         ["--report", "not an earlier report"]),
+    "a record inside the results": (
+        ["report", "--out", "{r}/results", "--report", "{r}/rep/results.md", "--record",
+         "{r}/results/kept"], None, ["--record", "lies inside the input"]),
+    "a record in a folder of other files": (
+        ["report", "--out", "{r}/results", "--report", "{r}/rep/results.md", "--record",
+         "{r}/other"], _other_folder, ["--record", "thesis.tex", "no record wrote"]),
+    "a report inside its record": (
+        ["report", "--out", "{r}/results", "--report", "{r}/kept/results.md", "--record",
+         "{r}/kept"], None, ["--report", "lies inside the input"]),
     "report beside images it did not write": (
         ["report", "--out", "{r}/results", "--report", "{r}/report/results.md"],
         _foreign_image, ["--report", "plan.txt"]),

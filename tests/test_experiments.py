@@ -722,3 +722,47 @@ def test_table1_has_a_row_for_every_weight_rule_of_each_classical_method():
     for rows in RULE_ROWS.values():
         for run, _, _ in rows:
             assert run in CLASSICAL and run in METHOD_NAMES
+
+
+def test_the_record_keeps_runs_whose_folder_is_gone(serial, tmp_path):
+    """A report with --record copies OUT's finished runs into the record (metrics.json
+    without its volume files) and counts the record's other runs: a later OUT that lacks
+    them still reports them, with the numbers they were recorded with."""
+    from mi_grg.lab.report_tables import table1_rows
+    _, _, out, _ = serial
+    record = tmp_path / "docs" / "runs"
+    write_report(out, tmp_path / "docs" / "first.md", record=record)
+    for case in ("shepp", "blob"):
+        for run in ("fdk", "sart"):
+            kept = json.loads((record / "table1" / case / run / "metrics.json").read_text())
+            mine = _metrics(out, case, run)
+            assert kept["record_of"] == str(out / "table1" / case / run)
+            assert "volume_files" not in kept and "volume_files" in mine
+            assert {k: v for k, v in kept.items() if k != "record_of"} == \
+                {k: v for k, v in mine.items() if k != "volume_files"}
+    index = json.loads((record / "table1" / "runs.json").read_text())
+    assert sorted((r["case"], r["run"]) for r in index["runs"]) == sorted(
+        (r["case"], r["run"]) for r in load_runs(out)["table1"] if r["metrics"])
+    assert any(c.startswith("mi-grg experiment table1") for c in index["commands"])
+    # a later results folder: one new case, shepp's fdk run again, blob's fdk broken
+    later = tmp_path / "later"
+    _fake_run(later, "table1", "c", "fdk", "HO", "fdk", psnr_3d=25.0, ssim_3d=0.5)
+    _fake_run(later, "table1", "shepp", "fdk", "HO", "fdk", psnr_3d=99.0, ssim_3d=0.99)
+    (_fake_run(later, "table1", "blob", "fdk", "AO", "fdk") / "metrics.json").write_text("{")
+    md = write_report(later, tmp_path / "docs" / "later.md", record=record).read_text()
+    rows = load_runs(record)["table1"]                 # the record alone is a results folder
+    got = {(r["case"], r["run"]): r["metrics"]["psnr_3d"] for r in rows}
+    assert got[("shepp", "fdk")] == 99.0 and got[("c", "fdk")] == 25.0
+    assert got[("blob", "fdk")] == _metrics(out, "blob", "fdk")["psnr_3d"]   # not removed
+    assert got[("shepp", "sart")] == _metrics(out, "shepp", "sart")["psnr_3d"]
+    h, b = table1_rows(rows)
+    fdk = next(line for line in b if line[0] == "FDK")
+    assert fdk[1] == f"{(99.0 + 25.0) / 2:.2f}"       # HO: shepp run again, and c
+    assert fdk[3] == f"{_metrics(out, 'blob', 'fdk')['psnr_3d']:.2f}"   # AO: blob, recorded
+    assert _table_row(md, "## Table 1", "FDK")[1:] == fdk[1:]
+    assert "From the record" in md and "table1/blob" in md and "table1/c," not in md
+    assert f"--record {record}" in md and "mi-grg experiment table1" in md
+    # the record alone, where the results folder is gone
+    alone = write_report(tmp_path / "gone", tmp_path / "docs" / "alone.md",
+                         record=record).read_text()
+    assert _table_row(alone, "## Table 1", "FDK") == _table_row(md, "## Table 1", "FDK")

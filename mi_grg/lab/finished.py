@@ -3,7 +3,8 @@
 ``run_problem`` says why a run folder does not read back: its metrics.json must parse to
 an object, and when it records the volume's size (``nVoxel``; every run that
 ``mi_grg.methods.reconstruct`` wrote does) the volume files it names (``volume_files``,
-else ``vol_pred.npy``) must exist whole with that shape. The report counts only such runs
+else ``vol_pred.npy``) must exist whole with that shape (a record's copy, ``record_of``,
+keeps no volume: ``mi_grg.lab.record``). The report counts only such runs
 and lists the others as broken (``read_finished``, ``broken_md``); ``mi-grg experiment``
 runs them again (``is_finished``), naming each once.
 
@@ -29,7 +30,7 @@ _NUMBER, _NONE = (int, float), type(None)
 #: ``mi_grg.methods.reconstruct`` writes them in (each may be absent; "*": every key).
 SCHEMA = {"method": str, "options": dict, "seconds": _NUMBER, "n_train_views": int,
           "nVoxel": list, "geometry": dict, "psnr_3d": _NUMBER, "ssim_3d": _NUMBER,
-          "volume_files": [str], "machine": {"*": (str, int, float, _NONE)},
+          "volume_files": [str], "record_of": str, "machine": {"*": (str, int, float, _NONE)},
           "data": {"n_voxel": [int], "n_detector": [int], "mode": str},
           "method_info": {"iterations_run": int, "iterations_planned": (int, _NONE),
                           "protocol": str, "stopped_by": (str, _NONE),
@@ -103,8 +104,8 @@ def run_problem(run_dir) -> str | None:
     wrong = _mismatch(m, SCHEMA, "")
     if wrong:
         return f"{d / METRICS}: {wrong}"[:300]
-    if "nVoxel" not in m:
-        return None       # a record that names no volume (written by other tools)
+    if "nVoxel" not in m or "record_of" in m:
+        return None       # names no volume: written by other tools, or mi_grg.lab.record
     shape = m["nVoxel"]
     if not (isinstance(shape, list) and len(shape) == 3
             and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)):
@@ -199,22 +200,25 @@ def read_runs(path: Path):
     return {"runs": [dict(r) for r in runs], "commands": commands}
 
 
-def report_target(out: Path, report: Path, all_rows: dict) -> Path:
+def report_target(out: Path, report: Path, all_rows: dict, record: Path | None = None) -> Path:
     """The report's image folder, ``img/<report's name>/`` beside it (two reports in one
     folder keep their own figures), once ``mi-grg report``'s rule holds (DatasetError, one
-    line, otherwise): ``out`` holds runs, and the report and its images go nowhere the
-    runner wrote."""
+    line, otherwise): ``out`` (or the ``record``, where ``out`` is gone) holds runs, and the
+    report and its images go nowhere the runner or the record wrote."""
     from mi_grg.data.dataset import DatasetError
     from mi_grg.data.outputs import check_report_out
-    if not out.is_dir():
+    if not out.is_dir() and record is None:
         raise DatasetError(f"--out {out}: the results folder does not exist")
     if not all_rows:
         raise DatasetError(f"--out {out}: holds no runs (no EXPERIMENT/runs.json, no "
                            "EXPERIMENT/CASE/RUN/metrics.json): not a folder that `mi-grg "
-                           "experiment` wrote")
+                           "experiment` wrote" + (f", and the record {record} holds none"
+                                                  if record is not None else ""))
     from mi_grg.lab.suite import EXPERIMENTS
     inputs = [out / "data", out / "suite.json",
               *(out / name for name in {*EXPERIMENTS, *all_rows})]
+    if record is not None:
+        inputs.append(record)
     images = report.parent / "img" / report.stem
     check_report_out(report, images, inputs, lambda head: head.startswith(REPORT_HEAD))
     return images

@@ -83,30 +83,44 @@ def _dict(value) -> dict:
     return value if isinstance(value, dict) else {}
 
 
-def load_runs(out_dir) -> dict:
-    """{experiment: [row]} where row has case, run, category, label, method, views, dir,
-    status and ``metrics`` (the run's metrics.json, or None when missing)."""
+def load_experiment(exp_dir: Path) -> list:
+    """The rows of one experiment folder: case, run, category, label, method, views, dir,
+    status and ``metrics`` (the run's metrics.json, or None unless the run reads back)."""
+    index = read_runs(exp_dir / "runs.json")
+    rows = [] if index is None else index["runs"]
+    if index is None:   # no runs.json: scan the layout
+        for m in sorted(exp_dir.glob("*/*/metrics.json")):
+            met = _dict(_read_json(m))
+            sc = _dict(_dict(met.get("data")).get("suite_case"))
+            row = {"case": m.parent.parent.name, "run": m.parent.name,
+                   "category": sc.get("category"), "label": m.parent.name,
+                   "method": met.get("method"), "views": sc.get("views")}
+            rows.append({k: v if isinstance(v, ROW_TYPES[k]) else None
+                         for k, v in row.items()})
+    for r in rows:
+        d = exp_dir / r["case"] / r["run"]
+        r["dir"] = str(d)
+        r["metrics"] = read_finished(d, r)   # None unless the run reads back
+    return rows
+
+
+def _experiments(folder: Path) -> dict:
+    return {p.name: load_experiment(p) for p in sorted(folder.iterdir())
+            if p.is_dir() and p.name != "data"}
+
+
+def load_runs(out_dir, record=None) -> dict:
+    """{experiment: [row]} (``load_experiment``'s rows, then the hybrids' parts as rows).
+    With ``record`` (``mi_grg.lab.record``): OUT's finished runs are copied into it first,
+    and its runs that OUT has not finished are rows too (marked ``recorded``)."""
     out = Path(out_dir)
-    result = {}
-    for exp_dir in sorted(p for p in out.iterdir() if p.is_dir() and p.name != "data"):
-        index = read_runs(exp_dir / "runs.json")
-        rows = [] if index is None else index["runs"]
-        if index is None:   # no runs.json: scan the layout
-            for m in sorted(exp_dir.glob("*/*/metrics.json")):
-                met = _dict(_read_json(m))
-                sc = _dict(_dict(met.get("data")).get("suite_case"))
-                row = {"case": m.parent.parent.name, "run": m.parent.name,
-                       "category": sc.get("category"), "label": m.parent.name,
-                       "method": met.get("method"), "views": sc.get("views")}
-                rows.append({k: v if isinstance(v, ROW_TYPES[k]) else None
-                             for k, v in row.items()})
-        for r in rows:
-            d = exp_dir / r["case"] / r["run"]
-            r["dir"] = str(d)
-            r["metrics"] = read_finished(d, r)   # None unless the run reads back
-        if rows:
-            result[exp_dir.name] = rows + part_rows(rows)
-    return result
+    result = _experiments(out) if out.is_dir() else {}
+    if record is not None:
+        from mi_grg.lab.record import keep, merge
+        record = Path(record)
+        keep(out, record, result)
+        result = merge(result, _experiments(record) if record.is_dir() else {})
+    return {exp: rows + part_rows(rows) for exp, rows in result.items() if rows}
 
 
 def part_rows(rows) -> list:
@@ -126,10 +140,12 @@ def part_rows(rows) -> list:
     return out
 
 
-def _commands(out_dir) -> list:
+def _commands(out_dir, record=None) -> list:
+    """The commands that made the runs of OUT (and of the record), each once."""
     cmds = []
-    for f in sorted(Path(out_dir).glob("*/runs.json")):
-        cmds += read_runs(f)["commands"]
+    for folder in [Path(out_dir)] + ([Path(record)] if record is not None else []):
+        for f in sorted(folder.glob("*/runs.json")):
+            cmds += [c for c in read_runs(f)["commands"] if c not in cmds]
     return cmds
 
 
