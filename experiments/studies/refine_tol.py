@@ -46,16 +46,27 @@ def length_at(curve: list, tol: float) -> list:
     return next([e[0], e[2]] for e in curve if e[0] == it)
 
 
+def first_minimum(curve: list) -> list:
+    """[iteration, 3-D PSNR] of the first check whose held-out MSE the next one does not
+    undercut (a held-out rule tried against the tolerance), or the last check."""
+    i = next((i for i in range(len(curve) - 1) if curve[i + 1][1] >= curve[i][1]),
+             len(curve) - 1)
+    return [curve[i][0], curve[i][2]]
+
+
 def replay(curves: dict) -> dict:
-    """{case key: {"set", "default": [it, psnr], "tol": {t: [it, psnr]}}} on the default's
-    form and weight."""
+    """{case key: {"set", "default": [it, psnr], "tol": {t: [it, psnr]}, "first_min",
+    "oracle": [it, psnr]}} on the default's form and weight (the oracle: the best 3-D PSNR
+    along the curve, picked with the ground truth)."""
     out = {}
     for key, r in curves.items():
         d = r["rules"]["default"]
         c = r["curves"][d["form"]][f"{d['lam']:g}"]
+        best = max(c, key=lambda e: e[2])
         out[key] = {"set": r["set"], "form": d["form"],
                     "default": [d["iteration"], d["psnr"]],
-                    "tol": {f"{t:g}": length_at(c, t) for t in TOLS}}
+                    "tol": {f"{t:g}": length_at(c, t) for t in TOLS},
+                    "first_min": first_minimum(c), "oracle": [best[0], best[2]]}
     return out
 
 
@@ -65,8 +76,8 @@ def markdown(records: dict) -> str:
     if rep:
         rows += ["Replayed on the recorded curves (grid on the fitted views, 3-D PSNR dB; "
                  "cells: the length, the change against the default):", "",
-                 "| case | set | default | " + " | ".join(f"tol {t:g}" for t in TOLS) + " |",
-                 "|---|---|---|" + "---|" * len(TOLS)]
+                 "| case | set | default | " + " | ".join(f"tol {t:g}" for t in TOLS)
+                 + " | first minimum | oracle |", "|---|---|---|" + "---|" * (len(TOLS) + 2)]
         gain = {}
         for which in ("tuning", "confirmation"):
             for key, r in rep.items():
@@ -78,12 +89,18 @@ def markdown(records: dict) -> str:
                     it, p = r["tol"][f"{t:g}"]
                     cells.append(f"{it} ({p - p0:+.2f})")
                     gain.setdefault((which, t), []).append(p - p0)
+                for name in ("first_min", "oracle"):
+                    if name in r:
+                        it, p = r[name]
+                        cells.append(f"{it} ({p - p0:+.2f})")
+                        gain.setdefault((which, name), []).append(p - p0)
                 rows.append(f"| {key} | {which} | {it0} it., {p0:.2f} | " + " | ".join(cells)
                             + " |")
         rows.append("")
         for which in ("tuning", "confirmation"):
             rows.append(f"{which}, mean change: " + ", ".join(
-                f"tol {t:g} {np.mean(gain[(which, t)]):+.3f} dB" for t in TOLS
+                f"{t if isinstance(t, str) else f'tol {t:g}'} "
+                f"{np.mean(gain[(which, t)]):+.3f} dB" for t in (*TOLS, "first_min", "oracle")
                 if (which, t) in gain) + ".  ")
     fin = {k: v for k, v in records.items() if k != "replay"}
     if fin:
