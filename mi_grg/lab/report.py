@@ -427,7 +427,7 @@ def write_report(out_dir, report_path="docs/results.md", record=None) -> Path:
     record = None if record is None else Path(record)
     if record is not None:
         check_record(record, out, report)
-    all_rows = load_runs(out, record) if out.is_dir() or record is not None else {}
+    all_rows = load_runs(out, record)
     img_dir = report_target(out, report, all_rows, record)
     rel = os.path.relpath(img_dir, report.parent)
     with staged_report(report, img_dir) as (tmp_report, tmp_img):
