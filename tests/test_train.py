@@ -41,10 +41,12 @@ def test_gr_beats_fdk_and_sart_clearly(tmp_path):
 
 def test_outputs_log_and_plot(tiny_case, tmp_path):
     # held out all run (holdout_until 1): the held-out views are evaluated at the end;
-    # refine="none", voxel_average=0: the saved Gaussians are then the trained state's
+    # refine="none", voxel_average=0, field_blur="none": the saved Gaussians are then the
+    # trained state's
     # (tests/test_refine.py checks the refined, voxel-averaged export)
     _, m = mi_grg.reconstruct(tiny_case, "gr", out_dir=tmp_path, iterations=30,
                               holdout_until=1.0, refine="none", voxel_average=0.0,
+                              field_blur="none",
                               progress=False, **TINY)
     for name in ("vol_pred.npy", "metrics.json", "slices.png", "gaussians.npz",
                  "gaussians.ply", "train_log.csv", "train_log.png", "checkpoint.npz"):

@@ -41,6 +41,7 @@ def decide(tr, case, anchor: bool) -> dict:
     from mi_grg.training import result
     geo = case.geometry
     kept, _, decider = result.kept_field(tr, False)
+    kept = result._averaged(tr, kept)      # the result's voxel average, as finish does
     d = result.decide_length(decider, kept, False, anchored=anchor)
     held = np.asarray(decider.held_idx)
     return {"iterations": d["iterations"], "heldout_mse": d["heldout_mse"],

@@ -47,7 +47,7 @@ BOOKKEEPING = ("checkpoint_every", "frozen_step")
 #: since no checkpointed state depends on them, but a finished run is stale for them.
 AFTER_TRAINING = ("refine", "refine_lam", "refine_max_iterations", "refine_output",
                   "refine_anchor", "refine_fall", "refine_tol", "fit_iterations", "fit_rate_scale",
-                  "voxel_average")
+                  "voxel_average", "field_blur")
 
 # Method presets: R2-Gaussian is GR-Gaussian with every graph component switched off, and
 # without the TV refinement (gr's addition beyond the paper; the baseline stays R2-Gaussian).
@@ -75,6 +75,11 @@ REFINE_OUTPUTS = ("gaussians", "voxels")
 #: projections; "off", the measured projections; "auto", whichever of the two reaches the
 #: lower held-out residual (``mi_grg.training.result``).
 REFINE_ANCHORS = ("auto", "on", "off")
+
+#: A blur of the returned field beyond the voxel average (``Protocol.field_blur``):
+#: "heldout", the share of a voxel's box variance whose blur of the kept state fits the
+#: held-out views best (``mi_grg.training.result.field_share``); "none", no blur.
+FIELD_BLURS = ("heldout", "none")
 
 #: Training's truncation extent (std devs) when ``Schedule.extent`` is None: the
 #: projector, the logged 3-D PSNR and the output volume use it. Shorter than the
@@ -252,9 +257,15 @@ class Protocol:
     fit_rate_scale: float = 2.0    # its Adam rates: the training's initial rates times
                                    # this. Why 150 at 2x: it scores as 300 steps at 1x did,
                                    # in half the time (docs/benchmarks.md, "The fit back")
-    voxel_average: float = 0.75    # share of a voxel's box variance the returned field is
+    voxel_average: float = 0.5     # share of a voxel's box variance the returned field is
                                    # blurred by, so that voxelising it gives voxel averages
                                    # (mi_grg.core.voxel_average); 0: centre samples (paper)
+                                   # (why 0.5: docs/benchmarks.md, "The voxel average's
+                                   # strength")
+    field_blur: str = "none"       # "heldout": the held-out views add the blur that fits
+                                   # them best (the field's own noise); "none": no more
+                                   # (why not the default: docs/benchmarks.md, "The voxel
+                                   # average's strength")
     monitor_3d: bool = False       # RESEARCH ONLY: stop on 3-D PSNR vs ground truth instead
     log_3d_every: int | None = None  # log 3-D PSNR vs ground truth every n iterations
                                    # (no effect on training); None: at each held-out
@@ -380,6 +391,9 @@ def _validate(c: dict) -> None:
     if not 0.0 < c["fit_rate_scale"] < math.inf:
         raise ConfigError(f"fit_rate_scale must be a finite factor > 0, got "
                           f"{c['fit_rate_scale']}")
+    if c["field_blur"] not in FIELD_BLURS:
+        raise ConfigError(f"field_blur must be one of {', '.join(FIELD_BLURS)}, got "
+                          f"{c['field_blur']!r}")
     if not c["voxel_average"] <= 1.0:
         raise ConfigError(f"voxel_average must be a fraction in [0, 1], got "
                           f"{c['voxel_average']}")

@@ -5,7 +5,13 @@ it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
 
 1. **Voxel average** (``voxel_average`` = f > 0): the returned field is blurred by f times
    a voxel's box variance (``mi_grg.core.voxel_average``), so that its voxelisation at
-   voxel centres holds voxel averages, as the ground truth of a scan does.
+   voxel centres holds voxel averages, as the ground truth of a scan does. With
+   ``field_blur="heldout"`` the held-out views add a share of their own
+   (``field_share``): the state kept before they joined training, blurred by each share
+   of ``BLUR_SHARES``, projected onto them; the share with the lowest residual is added
+   to f (variances add). That blur removes the field's own noise, which the views see;
+   the voxel's box is a property of the ground truth's grid, which they do not see, so
+   f stays fixed.
 2. **TV refinement** (``refine="tv"``): PDHG (``mi_grg.classical.pdhg``) solves
 
        min_x  1/2 ||A x - b'||^2 + lambda TV(x),   0 <= x,   b' = b - (P(G) - A V(G))
@@ -60,30 +66,34 @@ CHECK_EVERY = 5
 PATIENCE = 8
 #: Views projected at once by the field's exact projector (bounds its memory).
 VIEW_CHUNK = 5
+#: The shares of a voxel's box variance that ``field_blur="heldout"`` chooses among
+#: (docs/benchmarks.md, "The voxel average's strength": the dense volumes' views choose
+#: 1-3, the phantoms' 0).
+BLUR_SHARES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 
 
 def finish(trainer, progress: bool = True) -> tuple:
     """(vol_pred [x, y, z] float32, exported Gaussians, info) of a finished ``Trainer``
     (module docstring); ``info["export"]`` names the export's stem."""
     cfg = trainer.cfg.protocol
-    geo = trainer.case.geometry
     t0 = time.perf_counter()
-    field = _averaged(trainer, trainer.field_gaussians())
-    info = {"voxel_average": cfg.voxel_average,
+    kept, decided_by, decider = kept_field(trainer, progress, cfg.refine == "tv")
+    share, blur = field_share(trainer, kept, decider)
+    field = _averaged(trainer, trainer.field_gaussians(), share)
+    info = {"voxel_average": blur,
             "export": {"stem": EXPORT_STEMS["gaussians"], "is_result": True}}
     parts = _Parts(trainer)
     parts.add("gaussians", trainer.volume)
     vol = field_volume(trainer, field)
     parts.add("voxel_averaged", vol)
     if cfg.refine == "tv":
-        kept, decided_by, decider = kept_field(trainer, progress)
         if kept is None:
             info["refine"] = {"skipped": decided_by["skipped"]}
             print(f"refine=tv did nothing: {decided_by['skipped']}; the trained field is "
                   "returned unrefined", file=sys.stderr)
         else:
-            vol, field, info["refine"] = refine_field(trainer, field, vol, kept, decider,
-                                                      progress)
+            vol, field, info["refine"] = refine_field(
+                trainer, field, vol, _averaged(trainer, kept, share), decider, progress)
             info["refine"].update(decided_by)
             parts.add("refined_grid", info["refine"].pop("grid", None))
             if cfg.refine_output == "voxels":
@@ -265,21 +275,51 @@ def final_grid(trainer, field: Gaussians, vol: np.ndarray, anchored: bool,
                 init=vol, progress=False)
 
 
-def kept_field(trainer, progress: bool = True) -> tuple:
-    """(the voxel-averaged kept field or None, a record, the trainer whose held-out views
-    judge it): the state kept before the held-out views joined training, or without
-    held-out views the decision run's."""
+def kept_field(trainer, progress: bool = True, decision: bool = True) -> tuple:
+    """(the kept field, plain, or None; a record; the trainer whose held-out views judge
+    it): the state kept before the held-out views joined training, or without held-out
+    views the decision run's (``decision``; else None)."""
     st = trainer.state
     if len(trainer.held_idx) == 0:
+        if not decision:
+            return None, {"skipped": "no held-out views (holdout_every=0)"}, None
         run, record = decision_run(trainer, progress)
         if run is None:
             return None, record, None
         kept = run.field_gaussians(run.state.kept_raw, run.state.kept_density_scale)
-        return _averaged(trainer, kept), {"decision_run": record}, run
+        return kept, {"decision_run": record}, run
     if st.kept_raw is None:
         return None, {"skipped": "no state kept before the held-out views joined"}, None
-    kept = trainer.field_gaussians(st.kept_raw, st.kept_density_scale)
-    return _averaged(trainer, kept), {}, trainer
+    return trainer.field_gaussians(st.kept_raw, st.kept_density_scale), {}, trainer
+
+
+def field_share(trainer, kept: Gaussians | None = None, decider=None) -> tuple:
+    """(the share of a voxel's box variance the result blurs the field by, record): the
+    configured ``voxel_average``, plus under ``field_blur="heldout"`` the share of
+    ``BLUR_SHARES`` whose blur alone of ``kept`` (the plain kept field; None: the
+    trainer's own) has the lowest residual on ``decider``'s held-out views (module
+    docstring, step 1).
+    Without a kept state or held-out views nothing is added, and the record says why."""
+    cfg = trainer.cfg.protocol
+    base = float(cfg.voxel_average)
+    record = {"rule": cfg.field_blur, "voxel_average": base, "added": 0.0, "share": base}
+    if cfg.field_blur == "none":
+        return base, record
+    if kept is None:
+        kept, why, decider = kept_field(trainer, decision=False)
+        if kept is None:
+            return base, {**record, "skipped": why["skipped"]}
+    held = np.asarray(decider.held_idx)
+    measured = decider.case.train[held].astype(np.float64)
+    mse = []
+    for extra in BLUR_SHARES:
+        # the views judge the field against the continuous object: the voxel's own
+        # share is not theirs to judge, so the blur they choose adds to it
+        r = projections(decider, _averaged(decider, kept, extra), held) - measured
+        mse.append(float(np.mean(np.square(r))))
+    added = BLUR_SHARES[int(np.argmin(mse))]
+    return base + added, {**record, "added": added, "share": base + added,
+                          "heldout_mse": dict(zip(map(str, BLUR_SHARES), mse))}
 
 
 def decision_run(trainer, progress: bool = True) -> tuple:
@@ -314,10 +354,14 @@ def decision_run(trainer, progress: bool = True) -> tuple:
                  "held_out_views": run.held_idx.tolist()}
 
 
-def _averaged(trainer, g: Gaussians) -> Gaussians:
-    from mi_grg.core.voxel_average import voxel_average
-    f = trainer.cfg.protocol.voxel_average
-    return voxel_average(g, trainer.case.geometry, f) if f > 0 else g
+def _averaged(trainer, g: Gaussians, share: float | None = None) -> Gaussians:
+    """``g`` blurred by ``share`` of a voxel's box variance (None: ``field_share``'s)."""
+    from mi_grg.core.voxel_average import convolve_gaussians, voxel_variance
+    if share is None:
+        share = field_share(trainer)[0]
+    if share <= 0:
+        return g
+    return convolve_gaussians(g, share * voxel_variance(trainer.case.geometry, 1.0))
 
 
 def _fit_rates(trainer) -> dict:
