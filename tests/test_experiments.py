@@ -2,6 +2,7 @@
 resumability, parallel = serial, failure isolation, and a report whose numbers are read back
 independently from metrics.json."""
 import json
+import os
 import re
 from pathlib import Path
 
@@ -744,6 +745,11 @@ def test_the_record_keeps_runs_whose_folder_is_gone(serial, tmp_path):
     assert sorted((r["case"], r["run"]) for r in index["runs"]) == sorted(
         (r["case"], r["run"]) for r in load_runs(out)["table1"] if r["metrics"])
     assert any(c.startswith("mi-grg experiment table1") for c in index["commands"])
+    # the same report again rewrites nothing in the record
+    for f in record.rglob("*.json"):
+        os.utime(f, ns=(1, 1))
+    write_report(out, tmp_path / "docs" / "first.md", record=record)
+    assert {f.stat().st_mtime_ns for f in record.rglob("*.json")} == {1}
     # a later results folder: one new case, shepp's fdk run again, blob's fdk broken
     later = tmp_path / "later"
     _fake_run(later, "table1", "c", "fdk", "HO", "fdk", psnr_3d=25.0, ssim_3d=0.5)

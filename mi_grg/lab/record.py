@@ -24,10 +24,14 @@ RECORD_OF = "record_of"
 
 
 def _write_json(path: Path, obj) -> None:
-    """``obj`` as JSON at ``path``, swapped in whole (never seen half-written)."""
+    """``obj`` as JSON at ``path``, swapped in whole (never seen half-written); a file that
+    already holds it is left untouched (a report rewrites no unchanged record)."""
+    text = json.dumps(obj, indent=1, default=str) + "\n"
+    if path.is_file() and path.read_text() == text:
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
+    tmp.write_text(text)
     os.replace(tmp, path)
 
 
