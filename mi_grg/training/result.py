@@ -77,7 +77,9 @@ def finish(trainer, progress: bool = True) -> tuple:
     (module docstring); ``info["export"]`` names the export's stem."""
     cfg = trainer.cfg.protocol
     t0 = time.perf_counter()
-    kept, decided_by, decider = kept_field(trainer, progress, cfg.refine == "tv")
+    # the kept state only where a step reads it (its graph field is rebuilt to make it)
+    kept, decided_by, decider = (kept_field(trainer, progress) if cfg.refine == "tv"
+                                 else (None, {}, None))
     share, blur = field_share(trainer, kept, decider)
     field = _averaged(trainer, trainer.field_gaussians(), share)
     info = {"voxel_average": blur,
