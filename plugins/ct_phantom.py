@@ -15,7 +15,7 @@ import numpy as np
 from mi_grg.data.phantoms import PHANTOMS, EllipsoidPhantom, make_phantom
 from mi_grg.data.scene import ScanError, check_field_names, suggest
 
-_FIELDS = {"phantom": "shepp | needles | shells", "seed": "random families only"}
+_FIELDS = {"phantom": "shepp | needles | shells | blobs", "seed": "random families only"}
 
 
 class CTPhantom(mi.Medium):
@@ -29,10 +29,10 @@ class CTPhantom(mi.Medium):
 
      * - phantom
        - |string|
-       - ``shepp`` (3D modified Shepp-Logan), ``needles`` or ``shells``.
+       - ``shepp`` (3D modified Shepp-Logan), ``needles``, ``shells`` or ``blobs``.
      * - seed
        - |int|
-       - Seed of the random families ``needles`` and ``shells`` (default: 0). An error
+       - Seed of the random families ``needles``, ``shells`` and ``blobs`` (default: 0). An error
          for ``shepp``, which has no randomness.
 
     Extinction sigma_t(p) = phantom density at p (1 / length), albedo 0. Give it as the

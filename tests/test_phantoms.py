@@ -274,10 +274,10 @@ def test_shepp_region_values():
 
 # ------------------------------------------------------------------ families and validation
 def test_make_phantom_names_and_seeds():
-    assert PHANTOMS == ("shepp", "needles", "shells")
-    with pytest.raises(ValueError, match="shepp, needles, shells"):
+    assert PHANTOMS == ("shepp", "needles", "shells", "blobs")
+    with pytest.raises(ValueError, match="shepp, needles, shells, blobs"):
         make_phantom("walnut")
-    for name in ("needles", "shells"):
+    for name in ("needles", "shells", "blobs"):
         a, b, c = make_phantom(name, 1), make_phantom(name, 1), make_phantom(name, 2)
         assert np.array_equal(a.centres, b.centres) and np.array_equal(a.densities, b.densities)
         assert not np.array_equal(a.centres, c.centres)
@@ -299,6 +299,28 @@ def test_shells_have_negative_inner_ellipsoids_and_inclusions():
     ph = make_phantom("shells")
     assert np.sum(ph.densities < 0) == 3 and len(ph) == 14
     assert np.all(ph.semi_axes[6:].max(1) <= 0.07)
+
+
+def test_blobs_overlap_at_most_three_deep():
+    # The family's bound on density rests on each blob's bounding sphere meeting at most two
+    # earlier ones (then no point lies in more than three blobs); the rule must bind.
+    most, deepest = 0, 0.0
+    for seed in range(12):
+        ph = make_phantom("blobs", seed=seed)
+        assert len(ph) == 15 and ph.densities[0] == pytest.approx(0.1)
+        assert np.all((ph.densities[1:] >= 0.1) & (ph.densities[1:] <= 0.3))
+        c, r = ph.centres[1:], ph.semi_axes[1:].max(1)
+        meets = np.linalg.norm(c[:, None] - c[None], axis=-1) < r[:, None] + r[None]
+        earlier = np.tril(meets, -1).sum(1)
+        assert earlier.max() <= 2
+        most = max(most, earlier.max())
+        blobs = EllipsoidPhantom(centres=c, semi_axes=ph.semi_axes[1:],
+                                 rotations=ph.rotations[1:], densities=np.ones(14))
+        pts = np.concatenate([np.random.default_rng(seed).uniform(-1, 1, (100_000, 3)), c])
+        depth = blobs.density(pts, unit_geometry(nVoxel=(48, 48, 48)))
+        assert depth.max() <= 3.0
+        deepest = max(deepest, depth.max())
+    assert most == 2 and deepest >= 2.0
 
 
 def test_phantom_validation():

@@ -119,7 +119,7 @@ def test_phantom_instance_and_empty_test_split():
 
 def test_invalid_arguments():
     geo = small_geometry()
-    with pytest.raises(ValueError, match="shepp, needles, shells"):
+    with pytest.raises(ValueError, match="shepp, needles, shells, blobs"):
         simulate_case("walnut", geo)
     with pytest.raises(TypeError, match="noise"):
         simulate_case("shepp", geo, noise={"I0": 1e4})

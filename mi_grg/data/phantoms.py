@@ -12,8 +12,9 @@ volume box by ``world = offOrigin + scale * normalised`` with the uniform scale
 ``scale = min(sVoxel) / 2``, so it fits the box also when the box is not a cube. Densities
 are not scaled (units: 1 / length); line integrals are in world units (density x world length).
 
-Range. The built-in phantoms peak at density 1 (Shepp-Logan's skull, the needles, the
-outer shell), so their ground-truth voxel averages lie in [0, 1]. They are not stretched to
+Range. The built-in phantoms' densities lie in [0, 1] (Shepp-Logan's skull and the outer
+shell are 1; the needles and the blobs' overlaps reach 0.5-0.9 by seed), so their
+ground-truth voxel averages lie in [0, 1]. They are not stretched to
 reach 1 on every grid: a structure thinner than a voxel averages below its density (needles:
 max 0.965 at 64^3, 0.860 at 32^3; Shepp-Logan: 1.0 at 64^3, 0.972 at 32^3). Stretching would
 make the phantom depend on the grid and break the match between a data set and the
@@ -33,7 +34,7 @@ import numpy as np
 
 from mi_grg.core.geometry import Geometry
 
-PHANTOMS = ("shepp", "needles", "shells")
+PHANTOMS = ("shepp", "needles", "shells", "blobs")
 
 _RAY_CHUNK = 1 << 16        # rays per vectorised batch (keeps temporaries ~ tens of MB)
 _VOXEL_CHUNK = 1 << 20      # voxel centres per classification batch
@@ -470,14 +471,47 @@ def _shells(seed):
                             rotations=np.array(rots), densities=np.array(rho), name="shells")
 
 
+def _blobs(seed):
+    """A faint body (0.1) holding 14 overlapping blobs (ellipsoids of density 0.1-0.3,
+    semi-axes 0.08-0.3) at random places and orientations inside it. A blob may overlap at
+    most two earlier ones (by bounding spheres), so no point lies in more than three blobs
+    (a fourth would be the later neighbour of three) and densities stay within [0, 1]."""
+    rng = np.random.default_rng(seed)
+    body_axes = np.array([0.85, 0.80, 0.75])
+    body_b = np.eye(3) / body_axes
+    cen, axes, rots, rho = [np.zeros(3)], [body_axes], [np.eye(3)], [0.1]
+    spheres = []   # (centre, bounding radius) of placed blobs
+    tries = 0
+    while len(spheres) < 14:
+        tries += 1
+        if tries > 20000:
+            raise RuntimeError("could not place the blobs; this is a bug")
+        a = rng.uniform(0.08, 0.3, 3)
+        p = rng.uniform(-1, 1, 3) * body_axes
+        if _ball_side(p, a.max() + 0.02, np.zeros(3), body_b, body_axes.min()) != 1:
+            continue
+        if sum(np.linalg.norm(p - q) < a.max() + r for q, r in spheres) > 2:
+            continue
+        spheres.append((p, a.max()))
+        cen.append(p)
+        axes.append(a)
+        rots.append(_random_rotation(rng))
+        rho.append(rng.uniform(0.1, 0.3))
+    return EllipsoidPhantom(centres=np.array(cen), semi_axes=np.array(axes),
+                            rotations=np.array(rots), densities=np.array(rho), name="blobs")
+
+
 def make_phantom(name: str, seed: int = 0) -> EllipsoidPhantom:
     """One of ``PHANTOMS``: ``"shepp"`` (3D modified Shepp-Logan; ``seed`` unused),
-    ``"needles"`` (random needles on a faint body) or ``"shells"`` (nested shells with
-    random small inclusions). Densities of every family lie in [0, 1]."""
+    ``"needles"`` (random needles on a faint body), ``"shells"`` (nested shells with
+    random small inclusions) or ``"blobs"`` (overlapping ellipsoids on a faint body).
+    Densities of every family lie in [0, 1]."""
     if name == "shepp":
         return _shepp()
     if name == "needles":
         return _needles(seed)
     if name == "shells":
         return _shells(seed)
+    if name == "blobs":
+        return _blobs(seed)
     raise ValueError(f"unknown phantom {name!r}; valid names: {', '.join(PHANTOMS)}")
