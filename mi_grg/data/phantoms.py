@@ -13,8 +13,8 @@ volume box by ``world = offOrigin + scale * normalised`` with the uniform scale
 are not scaled (units: 1 / length); line integrals are in world units (density x world length).
 
 Range. The built-in phantoms' densities lie in [0, 1] (Shepp-Logan's skull and the outer
-shell are 1; the needles and the blobs' overlaps reach 0.5-0.9 by seed), so their
-ground-truth voxel averages lie in [0, 1]. They are not stretched to
+shell are 1; the needles and the blobs' densest overlaps stay below 1, by how much depends
+on the seed), so their ground-truth voxel averages lie in [0, 1]. They are not stretched to
 reach 1 on every grid: a structure thinner than a voxel averages below its density (needles:
 max 0.965 at 64^3, 0.860 at 32^3; Shepp-Logan: 1.0 at 64^3, 0.972 at 32^3). Stretching would
 make the phantom depend on the grid and break the match between a data set and the
