@@ -40,7 +40,7 @@ def decide_again(out: Path, case_name: str) -> dict:
     """Both forms' curves for one finished run (module docstring)."""
     from mi_grg.data.dataset import load_case
     from mi_grg.training.config import make_config
-    from mi_grg.training.result import (_averaged, decide_length, field_volume,
+    from mi_grg.training.result import (averaged_field, decide_length, field_volume,
                                         kept_field)
     from mi_grg.training.trainer import Trainer
     run_dir = out / "table1" / case_name / "gr"
@@ -52,7 +52,7 @@ def decide_again(out: Path, case_name: str) -> dict:
                           progress=False, resume=run_dir / "checkpoint.npz")
         trainer.run()
         kept, _, decider = kept_field(trainer, progress=False)
-        kept = _averaged(trainer, kept)    # the result's voxel average, as finish does
+        kept = averaged_field(trainer, kept)    # the result's voxel average, as finish does
         start = field_volume(decider, kept)
         forms = {}
         for name, anchored in (("anchored", True), ("plain", False)):

@@ -35,7 +35,7 @@ def follow(out: Path, case_name: str, counts: list, rate_scale=None) -> dict:
     from mi_grg.data.dataset import load_case
     from mi_grg.evaluation.metrics import psnr_3d
     from mi_grg.training.config import make_config
-    from mi_grg.training.result import (_averaged, _fit_rates, field_volume,
+    from mi_grg.training.result import (averaged_field, _fit_rates, field_volume,
                                         final_grid)
     from mi_grg.training.trainer import Trainer
     from mi_grg.core.voxelizer import voxelize
@@ -55,7 +55,7 @@ def follow(out: Path, case_name: str, counts: list, rate_scale=None) -> dict:
             trainer.cfg.protocol.fit_rate_scale = rate_scale
         rate_scale = trainer.cfg.protocol.fit_rate_scale
         geo = trainer.case.geometry
-        field = _averaged(trainer, trainer.field_gaussians())
+        field = averaged_field(trainer, trainer.field_gaussians())
         vol = field_volume(trainer, field)
         grid = final_grid(trainer, field, vol, refine["anchor"]["anchored"],
                           refine["iterations"])

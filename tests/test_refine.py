@@ -220,7 +220,7 @@ def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkey
     t.run()
     _, _, info = result.finish(t, progress=False)
     assert seen["held"] == [1, 4] and info["refine"]["decision_run"]["held_out_views"] == [1, 4]
-    final = result.field_volume(t, result._averaged(t, t.field_gaussians()))
+    final = result.field_volume(t, result.averaged_field(t, t.field_gaussians()))
     assert not np.allclose(seen["kept"], final)
     budget = reconstruct(tiny_case, "gr", holdout_every=0, progress=False,
                          time_budget=30, n_points=300)[1]["method_info"]["refine"]

@@ -31,7 +31,7 @@ def test_anchored_data_give_the_start_the_fields_own_residual(trained):
     from mi_grg.training import result
     t = trained
     geo = t.case.geometry
-    g = result._averaged(t, t.field_gaussians())
+    g = result.averaged_field(t, t.field_gaussians())
     vol = result.field_volume(t, g)
     views = np.arange(geo.n_views)
     b2 = result.anchored_data(t, g, vol, views)
@@ -48,7 +48,7 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     curve; reaching the cap is said."""
     from mi_grg.training import result
     t = trained
-    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    kept = result.averaged_field(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
     monkeypatch.setattr(t.cfg.protocol, "refine_tol", 0.0)
@@ -71,7 +71,7 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     assert h["iterations"] < d["iterations"]
     # a cap of one check: the minimum is at the cap whenever one step helps; it is said
     monkeypatch.setattr(t.cfg.protocol, "refine_max_iterations", 5)
-    field = result._averaged(t, t.field_gaussians())
+    field = result.averaged_field(t, t.field_gaussians())
     monkeypatch.setattr(result, "decide_length", lambda *a, **k: {
         "iterations": 5, "at_cap": True, "curve": [(0, 1.0), (5, 0.5)], "heldout_mse": 0.5,
         "heldout_mse_chosen": 0.5, "norm_A": None, "seconds": 0.0})
@@ -90,7 +90,7 @@ def test_the_length_decision_stops_patience_checks_after_its_last_minimum(traine
     in it, the length is the full decision's. Without ``patience`` it is ``PATIENCE``."""
     from mi_grg.training import result
     t = trained
-    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    kept = result.averaged_field(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
     full = result.decide_length(t, kept, progress=False, start=start, patience=0)
@@ -118,7 +118,7 @@ def test_the_length_within_a_tolerance_of_the_minimum(trained, monkeypatch):
     whole fall means no refinement."""
     from mi_grg.training import result
     t = trained
-    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    kept = result.averaged_field(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     monkeypatch.setattr(t.cfg.protocol, "refine_fall", 1.0)
     d = result.decide_length(t, kept, progress=False, start=start, patience=0)
@@ -142,7 +142,7 @@ def test_the_two_length_decisions_share_one_power_iteration(trained, monkeypatch
     from mi_grg.classical import pdhg as pdhg_module
     from mi_grg.training import result
     t = trained
-    kept = result._averaged(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
+    kept = result.averaged_field(t, t.field_gaussians(t.state.kept_raw, t.state.kept_density_scale))
     start = result.field_volume(t, kept)
     own = result.decide_length(t, kept, progress=False, anchored=False, start=start)
     calls = []
@@ -157,7 +157,7 @@ def test_the_two_length_decisions_share_one_power_iteration(trained, monkeypatch
                                rtol=1e-6)
     monkeypatch.setattr(t.cfg.protocol, "refine_anchor", "auto")
     monkeypatch.setattr(t.cfg.protocol, "refine_output", "voxels")
-    field = result._averaged(t, t.field_gaussians())
+    field = result.averaged_field(t, t.field_gaussians())
     vol, _, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert set(info["anchor"]["curves"]) == {"anchored", "plain"}

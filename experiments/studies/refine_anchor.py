@@ -41,7 +41,7 @@ def decide(tr, case, anchor: bool) -> dict:
     from mi_grg.training import result
     geo = case.geometry
     kept, _, decider = result.kept_field(tr, False)
-    kept = result._averaged(tr, kept)      # the result's voxel average, as finish does
+    kept = result.averaged_field(tr, kept)      # the result's voxel average, as finish does
     d = result.decide_length(decider, kept, False, anchored=anchor)
     held = np.asarray(decider.held_idx)
     return {"iterations": d["iterations"], "heldout_mse": d["heldout_mse"],
@@ -110,7 +110,7 @@ def run_case(name: str, n: int, data_root: Path, states: Path, with_finish: bool
 
     def ps(v):
         return float(psnr_3d(v, case.vol_gt))
-    field = result._averaged(tr, tr.field_gaussians())
+    field = result.averaged_field(tr, tr.field_gaussians())
     vol = result.field_volume(tr, field)
     rec = {"case": name, "set": which, "n": n, "n_gaussians": summary["n_gaussians"],
            "train_seconds": time.perf_counter() - t0, "gaussians": ps(tr.volume()),

@@ -51,7 +51,7 @@ def curves(tr, case) -> dict:
     from mi_grg.training import result
     geo = case.geometry
     kept, _, decider = result.kept_field(tr, False)
-    kept = result._averaged(tr, kept)      # the result's voxel average, as finish does
+    kept = result.averaged_field(tr, kept)      # the result's voxel average, as finish does
     held = np.asarray(decider.held_idx)
     fit = np.setdiff1d(np.arange(geo.n_views), held)
     start = result.field_volume(decider, kept)

@@ -81,7 +81,7 @@ def finish(trainer, progress: bool = True) -> tuple:
     kept, decided_by, decider = (kept_field(trainer, progress) if cfg.refine == "tv"
                                  else (None, {}, None))
     share, blur = field_share(trainer, kept, decider)
-    field = _averaged(trainer, trainer.field_gaussians(), share)
+    field = averaged_field(trainer, trainer.field_gaussians(), share)
     info = {"voxel_average": blur,
             "export": {"stem": EXPORT_STEMS["gaussians"], "is_result": True}}
     parts = _Parts(trainer)
@@ -95,7 +95,7 @@ def finish(trainer, progress: bool = True) -> tuple:
                   "returned unrefined", file=sys.stderr)
         else:
             vol, field, info["refine"] = refine_field(
-                trainer, field, vol, _averaged(trainer, kept, share), decider, progress)
+                trainer, field, vol, averaged_field(trainer, kept, share), decider, progress)
             info["refine"].update(decided_by)
             parts.add("refined_grid", info["refine"].pop("grid", None))
             if cfg.refine_output == "voxels":
@@ -317,7 +317,7 @@ def field_share(trainer, kept: Gaussians | None = None, decider=None) -> tuple:
     for extra in BLUR_SHARES:
         # the views judge the field against the continuous object: the voxel's own
         # share is not theirs to judge, so the blur they choose adds to it
-        r = projections(decider, _averaged(decider, kept, extra), held) - measured
+        r = projections(decider, averaged_field(decider, kept, extra), held) - measured
         mse.append(float(np.mean(np.square(r))))
     added = BLUR_SHARES[int(np.argmin(mse))]
     return base + added, {**record, "added": added, "share": base + added,
@@ -356,8 +356,9 @@ def decision_run(trainer, progress: bool = True) -> tuple:
                  "held_out_views": run.held_idx.tolist()}
 
 
-def _averaged(trainer, g: Gaussians, share: float | None = None) -> Gaussians:
-    """``g`` blurred by ``share`` of a voxel's box variance (None: ``field_share``'s)."""
+def averaged_field(trainer, g: Gaussians, share: float | None = None) -> Gaussians:
+    """``g`` blurred by ``share`` of a voxel's box variance (None: ``field_share``'s): the
+    result's step 1, for the studies and benches that replay parts of ``finish``."""
     from mi_grg.core.voxel_average import convolve_gaussians, voxel_variance
     if share is None:
         share = field_share(trainer)[0]
