@@ -60,6 +60,7 @@ def test_file_round_trip_and_precedence(tmp_path):
     ('<training><float name="lambda_tv" value="nan"/></training>', "finite"),
     ('<training><float name="lambda_tv" value="-1"/></training>', "lambda_tv"),
     ('<training><string name="keep_state" value="first"/></training>', "keep_state.*latest"),
+    ('<training><string name="data_loss" value="l2"/></training>', "data_loss must be one of l1, rms"),
     ('<training><integer name="keep_state" value="1"/></training>', "string"),
     ('<training><float name="refine_fall" value="0"/></training>', "refine_fall must be a share"),
     ('<training><float name="refine_fall" value="1.5"/></training>', "refine_fall must be a share"),

@@ -87,6 +87,22 @@ def test_l1_value_and_gradient(variant, rng):
         losses.l1(tensor(a), tensor(b[:1]))
 
 
+def test_rms_value_and_gradient(variant, rng):
+    """Against float64: sqrt(mean r^2) and its gradient r / (n rms); finite at r = 0."""
+    a = rng.random((2, 5, 6)).astype(np.float32)
+    b = rng.random((2, 5, 6)).astype(np.float32)
+    r = a.astype(np.float64) - b
+    ref = np.sqrt(np.mean(r * r))
+    val, g = ad_grad(losses.rms, a, b)
+    assert val == pytest.approx(ref, rel=1e-6)
+    np.testing.assert_allclose(g, r / (a.size * ref), rtol=1e-5)
+    val, g = ad_grad(losses.rms, a, a)
+    assert val == pytest.approx(np.sqrt(losses.RMS_FLOOR), rel=1e-3)
+    assert np.all(np.isfinite(g)) and not np.any(g)
+    with pytest.raises(ValueError, match="shape"):
+        losses.rms(tensor(a), tensor(b[:1]))
+
+
 @pytest.mark.parametrize("shape", [(2, 13, 17), (1, 6, 9), (20, 31)])
 def test_ssim_value_matches_direct_windowed_sum(variant, rng, shape):
     a = rng.random(shape).astype(np.float32)
@@ -108,6 +124,11 @@ def test_projection_loss_is_l1_plus_weighted_dssim(variant, rng):
     assert got == pytest.approx(l1_ref + 0.25 * d_ref, abs=2e-6)
     assert float(losses.projection_loss(tensor(a), tensor(b), 0.0)[0]) == pytest.approx(
         l1_ref, abs=1e-7)
+    rms_ref = float(np.sqrt(np.mean(np.square(a.astype(np.float64) - b))))
+    got = float(losses.projection_loss(tensor(a), tensor(b), 0.25, "rms")[0])
+    assert got == pytest.approx(rms_ref + 0.25 * d_ref, abs=2e-6)
+    with pytest.raises(ValueError, match="data_loss must be one of l1, rms"):
+        losses.projection_loss(tensor(a), tensor(b), 0.25, "l2")
 
 
 def test_ssim_agrees_with_the_metric(variant, rng):

@@ -327,9 +327,9 @@ def test_gr_paper_preset_holds_the_papers_configuration():
     cfg = make_config("gr", ROOT / "scenes" / "gr_paper.xml")
     paper = {"k": 6, "lambda_lap": 8e-4, "lambda_g": 1e-4, "use_pga": True,
              "use_graph_field": True, "sigma_d": 3.0, "sigma_d_grid": 256, "init": "fdk",
-             "n_points": 50000, "init_tau": 0.001, "lambda_ssim": 0.25, "lambda_tv": 0.05,
-             "tv_block": 32, "densify_grad_threshold": 5e-5, "stop_drop": 0.005,
-             "refine": "none"}
+             "n_points": 50000, "init_tau": 0.001, "data_loss": "l1", "lambda_ssim": 0.25,
+             "lambda_tv": 0.05, "tv_block": 32, "densify_grad_threshold": 5e-5,
+             "stop_drop": 0.005, "refine": "none"}
     assert {k: cfg.to_flat()[k] for k in paper} == paper
 
 

@@ -39,7 +39,8 @@ def _traced(tr, raw, view, start=None):
     means2d = dr.zeros(mi.Vector2f, len(g))
     dr.enable_grad(means2d)
     img = tr._project(g, geo.angles[view:view + 1], tr._density_scale, means2d)
-    loss = projection_loss(mi.TensorXf(img.array, (nv, nu)), tr.targets[view], cfg.losses.lambda_ssim)
+    loss = projection_loss(mi.TensorXf(img.array, (nv, nu)), tr.targets[view],
+                           cfg.losses.lambda_ssim, cfg.losses.data_loss)
     if start is not None:
         block = np.minimum(cfg.losses.tv_block, np.asarray(geo.nVoxel)).tolist()
         vol = voxelize_dr(g, geo, block=(start, block), extent=tr.tv_extent,
@@ -103,6 +104,23 @@ def test_frozen_tv_iteration_equals_traced(tiny_case, one_thread):
     assert results[0][2] is None and all(r[2] is not None for r in results[1:])
     assert fz.fn[True].n_recordings == 2 and fz.fn[False].n_recordings == 1
     _assert_equal(tr, raw, results[1:])
+
+
+def test_frozen_rms_step_is_the_views_rms_residual(tiny_case, one_thread):
+    """data_loss="rms" (no SSIM, no Laplacian): the recorded step's loss is the root mean
+    square of the view's residual, computed here in float64 from its projection; its
+    gradients are the traced step's."""
+    tr, raw, fz, said = _state(tiny_case, data_loss="rms", lambda_ssim=0.0, lambda_lap=0.0)
+    assert tr.step_cfg.data_loss == "rms"
+    fz.per_gaussian.update(rows=40.0, near=0.01)
+    results = _frozen_calls(tr, raw, fz, [(0, None), (3, None)])
+    _assert_equal(tr, raw, results)
+    g = Gaussians.from_raw({k: dr.detach(v) for k, v in raw.items()})
+    for view, _, loss, _ in results:
+        img = np.asarray(tr._project(g, tr.case.geometry.angles[view:view + 1],
+                                     tr._density_scale, None).array, np.float64)
+        r = img.reshape(-1) - np.asarray(tr.targets[view].array, np.float64)
+        assert loss == pytest.approx(np.sqrt(np.mean(r * r)), rel=1e-5)
 
 
 def _run(case, out_dir, frozen, crash=None, resume=False, **kw):

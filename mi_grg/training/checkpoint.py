@@ -44,7 +44,7 @@ ADDED_LATER = {"rebuild_keeps_field": False, "holdout_until": 1.0, "time_budget"
                "horizon": None,
                # R2-Gaussian's rules, constants of the densifier before they were settings
                "clone_scale_fraction": 0.1, "split_scale_factor": 1.6, "min_density": 1e-5,
-               "bbox_margin": 0.0, "field_blur": "none"}
+               "bbox_margin": 0.0, "field_blur": "none", "data_loss": "l1"}
 
 
 def upgrade_config_dict(values: dict) -> dict:

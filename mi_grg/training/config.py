@@ -61,6 +61,11 @@ PRESETS = {
 #: The volumes De-Init can start from (``DeInit.init``).
 INIT_VOLUMES = ("fdk", "pdhg")
 
+#: A view's data term in training (``Losses.data_loss``): "l1", the paper's mean absolute
+#: residual; "rms", the root mean square residual (least squares' direction, at a scale
+#: that does not shrink with the residual, so the TV and graph weights keep their pull).
+DATA_LOSSES = ("l1", "rms")
+
 #: What runs after training (``Protocol.refine``): "none", or "tv": a data-consistent
 #: total-variation refinement of the voxelised result whose weight and length the
 #: held-out views choose (``mi_grg.training.result``).
@@ -186,7 +191,9 @@ class Densification:
 
 @dataclass
 class Losses:
-    """The projection loss's SSIM share and the 3-D TV term on a random block."""
+    """The projection loss (its data term and SSIM share) and the 3-D TV term on a random
+    block."""
+    data_loss: str = "l1"          # DATA_LOSSES
     lambda_ssim: float = 0.25
     lambda_tv: float = 0.05
     tv_block: int = 32             # edge of the randomly placed TV block, voxels
@@ -371,6 +378,9 @@ def _validate(c: dict) -> None:
     if c["init"] not in INIT_VOLUMES:
         raise ConfigError(f"init must be one of {', '.join(INIT_VOLUMES)}, got "
                           f"{c['init']!r}")
+    if c["data_loss"] not in DATA_LOSSES:
+        raise ConfigError(f"data_loss must be one of {', '.join(DATA_LOSSES)}, got "
+                          f"{c['data_loss']!r}")
     if c["refine"] not in REFINE_MODES:
         raise ConfigError(f"refine must be one of {', '.join(REFINE_MODES)}, got "
                           f"{c['refine']!r}")

@@ -3,6 +3,8 @@
 All return an ``mi.Float`` of width 1 (a scalar that ``dr.backward`` accepts).
 
 * ``l1``: mean absolute difference (R2-Gaussian ``l1_loss``).
+* ``rms``: root mean square difference (least squares' gradient direction; its size does
+  not shrink with the residual, as L1's does not).
 * ``dssim``: 1 - SSIM with R2-Gaussian's/3DGS's loss SSIM: 11 x 11 Gaussian window,
   sigma 1.5 (the 1-D window normalised to sum 1; the 2-D window its outer product),
   applied like ``conv2d(padding=5)`` -- ZERO padding, same-size map -- with the constants
@@ -27,6 +29,7 @@ from mi_grg.evaluation.metrics import WINDOW_SIGMA, WINDOW_SIZE, gaussian_window
 
 C1 = 0.01 ** 2
 C2 = 0.03 ** 2
+RMS_FLOOR = 1e-12
 
 
 def _flat(x, name):
@@ -39,15 +42,26 @@ def _flat(x, name):
     return mi.Float(arr.reshape(-1)), arr.shape
 
 
-def l1(pred, target) -> "mi.Float":
-    """mean |pred - target| over all entries (same shapes)."""
+def _residual(pred, target, name: str) -> "mi.Float":
+    """pred - target, flat (same non-empty shapes; ``name`` for the error)."""
     a, sa = _flat(pred, "pred")
     b, sb = _flat(target, "target")
     if sa != sb:
         raise ValueError(f"pred has shape {sa} but target has shape {sb}")
     if dr.width(a) == 0:
-        raise ValueError("l1 of empty arrays")
-    return dr.mean(dr.abs(a - b))
+        raise ValueError(f"{name} of empty arrays")
+    return a - b
+
+
+def l1(pred, target) -> "mi.Float":
+    """mean |pred - target| over all entries (same shapes)."""
+    return dr.mean(dr.abs(_residual(pred, target, "l1")))
+
+
+def rms(pred, target) -> "mi.Float":
+    """sqrt(mean (pred - target)^2 + tiny) over all entries (same shapes); the tiny floor
+    (1e-12) keeps the gradient finite at a zero residual."""
+    return dr.sqrt(dr.mean(dr.square(_residual(pred, target, "rms"))) + RMS_FLOOR)
 
 
 def _blur_axis(img, n_views, h, w, weights, axis):
@@ -145,10 +159,13 @@ def dssim(pred, target, window_size: int = WINDOW_SIZE, sigma: float = WINDOW_SI
     return 1.0 - ssim(pred, target, window_size, sigma)
 
 
-def projection_loss(pred, target, lambda_ssim: float):
-    """The data term of training, the paper's L1 + lambda_ssim D-SSIM; mi.Float width 1.
-    The D-SSIM blur is skipped when lambda_ssim is 0."""
-    loss = l1(pred, target)
+def projection_loss(pred, target, lambda_ssim: float, data_loss: str = "l1"):
+    """The data term of training: ``data_loss`` ("l1", the paper's, or "rms") + lambda_ssim
+    D-SSIM; mi.Float width 1. The D-SSIM blur is skipped when lambda_ssim is 0."""
+    terms = {"l1": l1, "rms": rms}
+    if data_loss not in terms:
+        raise ValueError(f"data_loss must be one of {', '.join(terms)}, got {data_loss!r}")
+    loss = terms[data_loss](pred, target)
     if lambda_ssim > 0:
         loss = loss + lambda_ssim * dssim(pred, target)
     return loss

@@ -1,9 +1,9 @@
 """One training iteration's loss and gradients, written once.
 
     Gaussians.from_raw -> the projection of one view (with ``means2d``, whose gradient is
-    the densification statistic) -> L1 + lambda_ssim D-SSIM -> + TV on a voxelised block
-    (every ``tv_every``-th iteration, weighted ``tv_every`` x) -> + the graph Laplacian ->
-    backward -> every gradient in one kernel.
+    the densification statistic) -> L1 (or RMS: ``data_loss``) + lambda_ssim D-SSIM -> + TV
+    on a voxelised block (every ``tv_every``-th iteration, weighted ``tv_every`` x) -> + the
+    graph Laplacian -> backward -> every gradient in one kernel.
 
 ``loss_and_grads(cfg, inputs)`` is that body. The trainer's traced step calls it directly;
 the recorded step (``mi_grg.training.recording``) records ``recorded_step``, the same call
@@ -82,12 +82,13 @@ class StepConfig:
     tv: TVTerm | None = None
     lambda_lap: float = 0.0
     screen_gradient: bool = True
+    data_loss: str = "l1"
 
     @classmethod
     def from_train_config(cls, cfg, geometry, extent: float, tv_extent: float) -> "StepConfig":
         tv = TVTerm(tv_weight(cfg.losses), tv_block(cfg.losses, geometry), float(tv_extent))
         return cls(geometry, float(extent), cfg.losses.lambda_ssim, tv,
-                   float(cfg.graph.lambda_lap))
+                   float(cfg.graph.lambda_lap), data_loss=cfg.losses.data_loss)
 
     def refit(self) -> "StepConfig":
         """The refit's iteration: the projection loss alone."""
@@ -198,7 +199,8 @@ def loss_and_grads(cfg: StepConfig, inputs: StepInputs) -> StepOutputs:
     setup = prepare(cfg.geometry, len(g), cfg.extent, inputs.view, cfg.view0,
                     rows=None if caps is None else caps[0])
     img = project_prepared(setup, g, inputs.density_scale, means2d)
-    loss = projection_loss(mi.TensorXf(img, (nv, nu)), inputs.target, cfg.lambda_ssim)
+    loss = projection_loss(mi.TensorXf(img, (nv, nu)), inputs.target, cfg.lambda_ssim,
+                           cfg.data_loss)
     pairs = None
     if inputs.tv_start is not None:
         tv, pairs = _tv_term(cfg, inputs, g)

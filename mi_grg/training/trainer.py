@@ -1,7 +1,7 @@
 """GR-Gaussian / R2-Gaussian training: the loop that ties the components together.
 
     FDK of the fitting views -> De-Init (or plain FDK init for R2) -> per iteration: one
-    view's projection loss (L1 + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
+    view's projection loss (L1 or RMS + lambda_ssim D-SSIM) + lambda_tv TV on a random voxelised
     block (every ``tv_every``-th iteration, weighted ``tv_every`` x) + lambda_lap graph
     Laplacian -> Adam -> PGA densification every ``densify_interval`` iterations inside
     its window (the paper's 100 of 30k, scaled to the run: 25 up to 7500 iterations; graph
