@@ -60,7 +60,7 @@ def l1(pred, target) -> "mi.Float":
 
 def rms(pred, target) -> "mi.Float":
     """sqrt(mean (pred - target)^2 + tiny) over all entries (same shapes); the tiny floor
-    (1e-12) keeps the gradient finite at a zero residual."""
+    (``RMS_FLOOR``) keeps the gradient finite at a zero residual."""
     return dr.sqrt(dr.mean(dr.square(_residual(pred, target, "rms"))) + RMS_FLOOR)
 
 
