@@ -31,7 +31,6 @@ VARIANTS = {
     "rms_ssim0": {"data_loss": "rms", "lambda_ssim": 0.0},
     "l1_ssim0": {"lambda_ssim": 0.0},
 }
-PARTS = ("gaussians", "voxel_averaged", "refined_grid", "export")
 
 
 def record(metrics: Path) -> dict:

@@ -63,7 +63,8 @@ INIT_VOLUMES = ("fdk", "pdhg")
 
 #: A view's data term in training (``Losses.data_loss``): "l1", the paper's mean absolute
 #: residual; "rms", the root mean square residual (least squares' direction, at a scale
-#: that does not shrink with the residual, so the TV and graph weights keep their pull).
+#: that does not shrink with the residual, so the TV and graph weights keep their pull);
+#: the keys of ``mi_grg.training.losses.DATA_TERMS``.
 DATA_LOSSES = ("l1", "rms")
 
 #: What runs after training (``Protocol.refine``): "none", or "tv": a data-consistent

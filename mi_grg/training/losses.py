@@ -64,6 +64,10 @@ def rms(pred, target) -> "mi.Float":
     return dr.sqrt(dr.mean(dr.square(_residual(pred, target, "rms"))) + RMS_FLOOR)
 
 
+#: ``data_loss`` name -> the view's data term (the names ``config.DATA_LOSSES`` validates).
+DATA_TERMS = {"l1": l1, "rms": rms}
+
+
 def _blur_axis(img, n_views, h, w, weights, axis):
     """1-D correlation with ``weights`` along u (axis=2) or v (axis=1), zero padding.
 
@@ -162,10 +166,9 @@ def dssim(pred, target, window_size: int = WINDOW_SIZE, sigma: float = WINDOW_SI
 def projection_loss(pred, target, lambda_ssim: float, data_loss: str = "l1"):
     """The data term of training: ``data_loss`` ("l1", the paper's, or "rms") + lambda_ssim
     D-SSIM; mi.Float width 1. The D-SSIM blur is skipped when lambda_ssim is 0."""
-    terms = {"l1": l1, "rms": rms}
-    if data_loss not in terms:
-        raise ValueError(f"data_loss must be one of {', '.join(terms)}, got {data_loss!r}")
-    loss = terms[data_loss](pred, target)
+    if data_loss not in DATA_TERMS:
+        raise ValueError(f"data_loss must be one of {', '.join(DATA_TERMS)}, got {data_loss!r}")
+    loss = DATA_TERMS[data_loss](pred, target)
     if lambda_ssim > 0:
         loss = loss + lambda_ssim * dssim(pred, target)
     return loss
