@@ -392,6 +392,13 @@ def test_summary_lines(tmp_path):
     over = md[md.index("Only 2 of the 3"):]
     row = _table_row(over, "Only 2 of the 3", "GR-Gaussian (gr)")
     assert row[1:3] == ["31.75", "0.900"]              # mean of 31.0 and 32.5 over a, b
+    # a case with Gaussian rows only is no win over every method: it is left out and named
+    for method, p in (("gr-paper", 28.0), ("gr", 40.0)):
+        _fake_run(out, "table1", "d", method, "AO", method, psnr_3d=p, ssim_3d=0.9)
+    lines = summary_lines(out)
+    assert "best 3-D PSNR on 1 of 2 cases" in lines[0] and "d +" not in lines[0], lines[0]
+    assert "left out, no classical row among these runs: d" in lines[0]
+    assert "d (" not in lines[1]
 
 
 def test_fair_margin_oracle_and_anytime_tables(tmp_path):
