@@ -302,3 +302,29 @@ def test_checkpoint_interval_scales_with_the_run():
     assert [checkpoint_interval(None, n) for n in (5, 60, 999, 4000, 6000, 30000)] == \
         [1, 6, 99, 400, 500, 500]
     assert checkpoint_interval(25, 60) == 25 and checkpoint_interval(1000, 60) == 1000
+
+
+def test_restored_state_does_not_alias_the_files_arrays(variant):
+    """Dr.Jit maps a contiguous NumPy array rather than copying it; what a checkpoint
+    restores (parameters, Adam moments, densifier sums) must hold its own memory, so that
+    writing to (or freeing) the arrays read from the file changes nothing."""
+    from mi_grg.training.checkpoint import _raw_from_numpy
+    from mi_grg.training.optim import Adam
+    arrs = {"positions": np.ones((4, 3), np.float32), "raw_scales": np.ones((4, 3), np.float32),
+            "raw_rotations": np.ones((4, 4), np.float32), "raw_densities": np.ones(4, np.float32)}
+    raw = _raw_from_numpy(arrs)
+    opt = Adam({k: 1e-3 for k in arrs})
+    moments = {"raw_densities": {"m": np.full(4, 2.0, np.float32),
+                                 "v": np.full(4, 3.0, np.float32), "step": 1}}
+    opt.load_state_dict(moments, like=raw)
+    dens = PGADensifier()
+    sums = {"grad_accum": np.full(4, 5.0, np.float32), "view_count": np.full(4, 6.0, np.float32)}
+    dens.load_state_dict(sums)
+    for a in (*arrs.values(), moments["raw_densities"]["m"], moments["raw_densities"]["v"],
+              *sums.values()):
+        a[...] = -7.0
+    np.testing.assert_array_equal(np.asarray(raw["raw_densities"]), 1.0)
+    np.testing.assert_array_equal(np.asarray(opt.state["raw_densities"].m), 2.0)
+    np.testing.assert_array_equal(np.asarray(opt.state["raw_densities"].v), 3.0)
+    np.testing.assert_array_equal(np.asarray(dens.grad_accum), 5.0)
+    np.testing.assert_array_equal(np.asarray(dens.view_count), 6.0)

@@ -92,7 +92,10 @@ def _raw_from_numpy(arrs: dict) -> dict:
     for k, t in _RAW_TYPES.items():
         a = np.asarray(arrs[k], np.float32)
         cls = getattr(mi, t)
-        out[k] = cls(a) if t == "Float" else cls(*[mi.Float(a[:, i]) for i in range(a.shape[1])])
+        # Dr.Jit maps a contiguous NumPy array instead of copying it; a resumed run that
+        # read parameters mapped onto the file's arrays crashed (segfault): copies of its own
+        out[k] = (cls(np.array(a)) if t == "Float"
+                  else cls(*[mi.Float(a[:, i]) for i in range(a.shape[1])]))
     return out
 
 
@@ -190,7 +193,7 @@ def load_checkpoint(path, optimizer, densifier, stopper, cfg: TrainConfig) -> Tr
                                    "view_count": f["dens_count"] if has_dens else None})
         if meta["stopper"]:
             stopper.load_state_dict(meta["stopper"])
-        kept_ds = (mi.Float(f["kept_density_scale"]) if "kept_density_scale" in f.files
+        kept_ds = (mi.Float(np.array(f["kept_density_scale"])) if "kept_density_scale" in f.files
                    else None)
         graph_pos = f["graph_positions"] if "graph_positions" in f.files else None
     return TrainState(iteration=meta["iteration"], raw=raw, rng=meta["rng"], log=meta["log"],

@@ -220,7 +220,8 @@ class PGADensifier:
         g, c = np.asarray(g, np.float32).reshape(-1), np.asarray(c, np.float32).reshape(-1)
         if g.shape != c.shape:
             raise DensifyError(f"grad_accum has {g.size} entries, view_count {c.size}")
-        self.grad_accum, self.view_count = mi.Float(g), mi.Float(c)
+        # copied, not mapped onto the caller's NumPy memory (mi_grg.training.checkpoint)
+        self.grad_accum, self.view_count = mi.Float(np.array(g)), mi.Float(np.array(c))
 
     # ------------------------------------------------------------------ statistics
     def reset(self, n: int) -> None:

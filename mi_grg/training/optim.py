@@ -369,6 +369,7 @@ def _to_rows(x) -> np.ndarray:
 
 def _from_rows(tp, rows):
     rows = np.asarray(rows, dtype=np.float32)
+    # copied, not mapped onto the caller's NumPy memory (mi_grg.training.checkpoint)
     if dr.depth_v(tp) == 1:
-        return tp(rows.reshape(-1))
+        return tp(np.array(rows.reshape(-1)))
     return tp(*[mi.Float(rows[:, c]) for c in range(rows.shape[1])])
