@@ -433,3 +433,33 @@ def test_knn_in_another_frame_reuses_the_kernels(variant, rng, kernel_hashes):
         runs.append((np.asarray(idx), hashes))
     assert all(np.array_equal(r[0], runs[0][0]) for r in runs)   # the same neighbours
     assert runs[2][1] <= runs[0][1] | runs[1][1], runs[2][1] - runs[0][1] - runs[1][1]
+
+
+def test_demand_is_met_where_the_count_settled_below_the_cap():
+    """densify.demand: the count's growth over the last quarter of the window (of the part
+    run) and its share of the cap at the window's end, from the run's log."""
+    from mi_grg.training.densify import DEMAND_CAP, DEMAND_GROWTH, DensifyWindow, demand
+    w = DensifyWindow(start=100, stop=1100, interval=25, max_count=1000)
+
+    def log(counts):    # iteration -> count, one row every 25 iterations to 2000
+        return [{"iteration": it, "n_gaussians": counts(it), "loss": 0.0}
+                for it in range(1, 2001, 25)]
+    # settled: the count stops growing halfway through the window
+    d = demand(log(lambda it: 300 + min(it, 600) // 2), w)
+    assert d["met"] and d["growth"] == 0.0 and d["cap_share"] == pytest.approx(0.6)
+    # still growing: the window ends at row 1076, its last quarter starts at 832 (row 826)
+    d = demand(log(lambda it: 100 + 4 * min(it, 1100) // 10), w)
+    n_end, n_q = 100 + 4 * 1076 // 10, 100 + 4 * 826 // 10
+    assert d["growth"] == pytest.approx(n_end / n_q - 1) and d["growth"] > DEMAND_GROWTH
+    assert not d["met"]
+    # at the cap, although the count no longer grows
+    d = demand(log(lambda it: min(1000, 500 + it)), w)
+    assert d["growth"] == 0.0 and d["cap_share"] >= DEMAND_CAP and not d["met"]
+    # a run stopped inside the window: its last quarter is that of the part run (rows to
+    # 501; the quarter starts at 401, row 376)
+    part = [r for r in log(lambda it: 100 + it // 2) if r["iteration"] <= 501]
+    d = demand(part, w)
+    assert d["growth"] == pytest.approx((100 + 501 // 2) / (100 + 376 // 2) - 1)
+    # no row inside the window (a run that never densified), or rows without a count
+    assert demand(log(lambda it: 5)[:3], w)["met"]
+    assert demand([{"iteration": 500, "loss": 0.0}], w)["met"]

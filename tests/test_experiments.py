@@ -291,6 +291,31 @@ def test_a_rule_change_marks_only_the_sizes_whose_count_it_changed():
     assert stale_keys(no_size) == []
 
 
+def test_an_anchored_run_at_its_cap_is_stale_under_the_demand_rule():
+    """A gr run whose refine_anchor="auto" took the anchor before densification's demand
+    decided it (no verdict recorded) is stale where its count ended at the cap (today it
+    refines plain), and only its result's steps are redone; runs below the cap, runs that
+    went plain, runs with a verdict and runs that fixed the form are not stale."""
+    from mi_grg.lab.staleness import stale_keys
+    from mi_grg.training.config import AFTER_TRAINING, make_config
+
+    def run(n, anchored=True, verdict=False, **options):
+        anchor = {"rule": "auto", "anchored": anchored}
+        if verdict:
+            anchor["densification"] = {"growth": 0.0, "cap_share": n / 131072, "met": False}
+        info = {"config": make_config("gr", **options).to_flat(), "extent": 3.5,
+                "iteration_rule": "3000*sqrt(n/64) to 64, 3000*min(n/64,2) above",
+                "n_gaussians": n, "max_gaussians": 131072, "refine": {"anchor": anchor}}
+        return {"method": "gr", "options": options, "nVoxel": [64, 64, 64],
+                "method_info": info}
+    assert stale_keys(run(131070)) == ["refine_anchor"]
+    assert "refine_anchor" in AFTER_TRAINING           # the trained state is kept
+    assert stale_keys(run(118089)) == []                # below the cap: as before
+    assert stale_keys(run(131070, anchored=False)) == []
+    assert stale_keys(run(131070, verdict=True)) == []
+    assert stale_keys(run(131070, refine_anchor="on")) == []
+
+
 def test_fixed_sweep_classical_runs_are_stale_under_the_heldout_default():
     from mi_grg.lab.staleness import stale_keys
     assert stale_keys({"method": "asd-pocs", "options": {}}) == ["stop"]   # ran before

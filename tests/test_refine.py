@@ -162,27 +162,66 @@ def test_refine_anchor_is_the_held_out_choice(tiny_case, monkeypatch):
     from mi_grg.methods import reconstruct
     from mi_grg.training import result
     from mi_grg.training.config import ConfigError
+    from mi_grg.training import densify
     opts = dict(iterations=300, n_points=300, eval_every=200, holdout_every=3,
                 progress=False)
+    # (the tiny run's count grows to the end of its window: its demand is declared met
+    # here; test_auto_refines_plain_where_densification_fell_short covers the other case)
+    met = {"growth": 0.0, "cap_share": 0.5, "met": True}
+    monkeypatch.setattr(densify, "demand", lambda log, window: met)
     _, m = reconstruct(tiny_case, "gr", **opts)
     r = m["method_info"]["refine"]
     a = r["anchor"]
     assert a["rule"] == "auto" and set(a["heldout_mse"]) == {"anchored", "plain"}
+    assert a["densification"] == met
     mse = a["heldout_mse"]
     assert a["anchored"] == (mse["anchored"] <= mse["plain"])
     assert r["heldout_mse"]["minimum"] == min(mse.values())
     for form, curve in a["curves"].items():     # both curves recorded, the chosen one's too
         assert min(m for _, m in curve) == mse[form] and curve[0][0] == 0
     assert a["curves"]["anchored" if a["anchored"] else "plain"] == r["curve"]
+    # the tiles (8 of 3 pixels a side here) weigh every pixel alike: the standardised
+    # difference has the sign of the residuals' difference
+    assert np.sign(a["z"]) == np.sign(mse["anchored"] - mse["plain"]) != 0
 
     def no_anchor(*args, **kwargs):
         raise AssertionError("refine_anchor=off built anchored data")
     monkeypatch.setattr(result, "anchored_data", no_anchor)
     _, m = reconstruct(tiny_case, "gr", refine_anchor="off", **opts)
     a = m["method_info"]["refine"]["anchor"]
-    assert a["anchored"] is False and list(a["heldout_mse"]) == ["plain"]
+    assert a["anchored"] is False and list(a["heldout_mse"]) == ["plain"] and a["z"] is None
     with pytest.raises(ConfigError, match="refine_anchor must be one of"):
         reconstruct(tiny_case, "gr", refine_anchor="maybe", **opts)
+
+
+def test_auto_refines_plain_where_densification_fell_short(tiny_case, monkeypatch):
+    """refine_anchor="auto" on a run whose densification did not meet the field's demand
+    (mi_grg.training.densify.demand on the run's own log and window) decides the plain
+    length only and records the verdict; the tiny run's count still grows at the end of
+    its window."""
+    from mi_grg.methods import reconstruct
+    from mi_grg.training import densify, result
+    forms, verdicts = [], []
+    real_decide, real_demand = result.decide_length, densify.demand
+
+    def spy_decide(*args, anchored=True, **kwargs):
+        forms.append(anchored)
+        return real_decide(*args, anchored=anchored, **kwargs)
+
+    def spy_demand(log, window):
+        verdicts.append(real_demand(log, window))
+        return verdicts[-1]
+    monkeypatch.setattr(result, "decide_length", spy_decide)
+    monkeypatch.setattr(densify, "demand", spy_demand)
+    _, m = reconstruct(tiny_case, "gr", iterations=300, n_points=300, eval_every=200,
+                       holdout_every=3, progress=False)
+    a = m["method_info"]["refine"]["anchor"]
+    assert len(verdicts) == 1 and not verdicts[0]["met"]
+    assert verdicts[0]["growth"] >= densify.DEMAND_GROWTH or \
+        verdicts[0]["cap_share"] >= densify.DEMAND_CAP
+    assert a["densification"] == verdicts[0]
+    assert forms == [False] and a["anchored"] is False and list(a["heldout_mse"]) == ["plain"]
+    assert a["z"] is None
 
 
 def test_without_held_out_views_a_decision_run_decides(tiny_case, capsys, monkeypatch):

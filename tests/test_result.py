@@ -74,7 +74,8 @@ def test_length_is_the_held_out_fall_and_the_cap_is_said(trained, capsys, monkey
     field = result.averaged_field(t, t.field_gaussians())
     monkeypatch.setattr(result, "decide_length", lambda *a, **k: {
         "iterations": 5, "at_cap": True, "curve": [(0, 1.0), (5, 0.5)], "heldout_mse": 0.5,
-        "heldout_mse_chosen": 0.5, "norm_A": None, "seconds": 0.0})
+        "heldout_mse_chosen": 0.5, "heldout_tiles": np.full(4, 0.5), "norm_A": None,
+        "seconds": 0.0})
     vol, g, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert info["at_cap"] and "a 4x higher cap measured no better" in capsys.readouterr().err
@@ -157,12 +158,41 @@ def test_the_two_length_decisions_share_one_power_iteration(trained, monkeypatch
                                rtol=1e-6)
     monkeypatch.setattr(t.cfg.protocol, "refine_anchor", "auto")
     monkeypatch.setattr(t.cfg.protocol, "refine_output", "voxels")
+    from mi_grg.training import densify     # (both forms: the tiny run's count still grows)
+    monkeypatch.setattr(densify, "demand", lambda log, window: {"met": True})
     field = result.averaged_field(t, t.field_gaussians())
     vol, _, info = result.refine_field(t, field, result.field_volume(t, field), kept, t,
                                        progress=False)
     assert set(info["anchor"]["curves"]) == {"anchored", "plain"}
     # one power iteration for the two decisions, one for the final refinement on every view
     assert len(calls) == (2 if info["iterations"] else 1)
+
+
+def test_tile_means_are_the_tiles_brute_force_means():
+    """Each view's detector cut into TILES x TILES tiles (row i in tile i * T // nv, and
+    so for columns; fewer tiles than pixels never), each tile's mean in view-major order."""
+    from mi_grg.training import result
+    rng = np.random.default_rng(0)
+    for shape in [(3, 24, 24), (2, 13, 29), (1, 5, 40)]:
+        r2 = rng.random(shape)
+        _, nv, nu = shape
+        tv, tu = min(result.TILES, nv), min(result.TILES, nu)
+        ref = [np.mean([r2[w, i, j] for i in range(nv) for j in range(nu)
+                        if i * tv // nv == a and j * tu // nu == b])
+               for w in range(shape[0]) for a in range(tv) for b in range(tu)]
+        np.testing.assert_allclose(result.tile_means(r2), ref, rtol=1e-12)
+
+
+def test_difference_z_is_the_mean_difference_over_its_standard_error():
+    from mi_grg.training import result
+    rng = np.random.default_rng(1)
+    a, b = rng.random(50), rng.random(50)
+    d = a - b
+    ref = d.mean() / (np.sqrt(np.sum((d - d.mean()) ** 2) / 49) / np.sqrt(50))
+    assert result.difference_z(a, b) == pytest.approx(ref, rel=1e-12)
+    assert result.difference_z(b, a) == pytest.approx(-ref, rel=1e-12)
+    assert result.difference_z(a, a) == 0.0
+    assert result.difference_z(a + 1.0, a) > 1e6      # a constant offset: no scatter
 
 
 def test_fit_to_volume_recovers_a_field_from_a_perturbed_start(tiny_case):

@@ -88,6 +88,8 @@ def stale_keys(m: dict) -> list:
         differ -= set(REFINE_KEYS)     # no refinement: its options have nothing to act on
     if "stop_noise" in differ and _margin_inert(m, used, now):
         differ.discard("stop_noise")
+    if _anchor_rule_changed(m, used):
+        differ.add("refine_anchor")
     return sorted(differ | _auto_changed(m, used, recorded)) + split
 
 
@@ -136,6 +138,21 @@ def _auto_changed(m: dict, used: dict, recorded: set) -> set:
         if changed:
             out.add("iterations")
     return out
+
+
+def _anchor_rule_changed(m: dict, used: dict) -> bool:
+    """Whether ``refine_anchor="auto"`` took the anchor, before densification's demand
+    decided it (the record has no verdict), in a run whose count ended at its cap: today it
+    refines such a run plain (``mi_grg.training.densify.demand``; a count still growing at
+    the end of its window, the rule's other half, is not in such a record)."""
+    from mi_grg.training.densify import DEMAND_CAP
+    info = m.get("method_info") or {}
+    anchor = (info.get("refine") or {}).get("anchor") or {}
+    if (used.get("refine") != "tv" or used.get("refine_anchor") != "auto"
+            or "densification" in anchor or not anchor.get("anchored")):
+        return False
+    n, cap = info.get("n_gaussians"), info.get("max_gaussians")
+    return bool(n and cap and n >= DEMAND_CAP * cap)
 
 
 def _margin_inert(m: dict, used: dict, now: dict) -> bool:

@@ -78,7 +78,8 @@ REFINE_MODES = ("none", "tv")
 REFINE_OUTPUTS = ("gaussians", "voxels")
 
 #: The refinement's data (``Protocol.refine_anchor``): "on", anchored on the field's own
-#: projections; "off", the measured projections; "auto", whichever of the two reaches the
+#: projections; "off", the measured projections; "auto", the measured ones where
+#: densification did not meet the field's demand, else whichever of the two reaches the
 #: lower held-out residual (``mi_grg.training.result``).
 REFINE_ANCHORS = ("auto", "on", "off")
 
@@ -247,8 +248,9 @@ class Protocol:
     refine_max_iterations: int = 200  # cap on the refinement's length (the held-out
                                    # residual chooses within it; metrics say when it binds)
     refine_anchor: str = "auto"    # the refinement's data: "on" anchored on the field's
-                                   # own projections, "off" the measured ones, "auto" the
-                                   # one with the lower held-out residual (why:
+                                   # own projections, "off" the measured ones, "auto"
+                                   # "off" where densification's demand was not met, else
+                                   # the one with the lower held-out residual (why:
                                    # docs/benchmarks.md, "The refinement's anchor")
     refine_fall: float = 1.0       # the refinement stops where the held-out residual has
                                    # made this share of its fall from the start to its

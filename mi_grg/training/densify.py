@@ -109,6 +109,35 @@ def densify_iterations(start: int, stop: int, interval: int, last: int) -> range
     return range(interval * (start // interval + 1), min(stop, last + 1), interval)
 
 
+#: Densification met the field's demand where, over the last quarter of its window, the
+#: count grew by less than this share ...
+DEMAND_GROWTH = 0.05
+#: ... and ended below this share of the window's cap (at the cap, candidates were cut).
+DEMAND_CAP = 0.99
+
+
+def demand(log: list, window: DensifyWindow) -> dict:
+    """Whether densification met the field's demand, from a run's ``log`` (rows with
+    "iteration" and "n_gaussians") and its ``window``: where the count still grew over the
+    window's last quarter, or reached the cap, the field wanted more Gaussians than it got
+    and does not resolve the object (docs/benchmarks.md, "The refinement's anchor").
+    {"growth": the count's relative growth over the last quarter (of the part run),
+    "cap_share": the count at the window's end over the cap, "met": bool}; a run that
+    never densified (no row in the window) met it."""
+    rows = [(int(r["iteration"]), int(r["n_gaussians"])) for r in log
+            if "n_gaussians" in r and int(r["iteration"]) <= window.stop]
+    if not rows or rows[-1][0] <= window.start:
+        return {"growth": 0.0, "cap_share": None, "met": True}
+    end_it, n_end = rows[-1]
+    quarter = end_it - (end_it - window.start) / 4.0
+    before = [n for it, n in rows if it <= quarter]
+    n_q = before[-1] if before else rows[0][1]
+    growth = n_end / max(n_q, 1) - 1.0
+    cap_share = n_end / window.max_count
+    return {"growth": growth, "cap_share": cap_share,
+            "met": bool(growth < DEMAND_GROWTH and cap_share < DEMAND_CAP)}
+
+
 def _seed_state(seed: int, iteration: int) -> int:
     """64-bit PCG32 initstate from (seed, iteration) (splitmix-style mixing)."""
     z = (int(seed) * 0x9E3779B97F4A7C15 + int(iteration) + 0x632BE59BD9B4E019) % (1 << 64)

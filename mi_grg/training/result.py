@@ -34,9 +34,13 @@ it scores (vol_pred) is always the voxelisation of the Gaussians it exports:
    decision run supplies the kept state (``decision_run``).
    The anchor helps where a voxel grid misses what the field resolves (thin needles, sharp
    edges) and costs where the field carries voxel-scale noise (dense micro-CT volumes).
-   ``refine_anchor="auto"`` decides the length both with it and without it (b' = b) and
-   refines with the form whose held-out residual is lower: both residuals predict the
-   same measured views (A x plus the anchor, or A x alone). "on" / "off" fix the form.
+   ``refine_anchor="auto"`` refines plain (b' = b) where densification did not meet the
+   field's demand (``mi_grg.training.densify.demand``: the count still grew at the end of
+   its window, or reached the cap): such a field does not resolve the object, and its
+   sub-voxel content, which the anchor carries, is not the object's. Elsewhere it decides
+   the length both with the anchor and without it and refines with the form whose
+   held-out residual is lower: both residuals predict the same measured views (A x plus
+   the anchor, or A x alone). "on" / "off" fix the form.
 3. **Back into the Gaussians** (``refine_output="gaussians"``): the refined grid is
    fitted by the field it started from (``mi_grg.training.distill``); vol_pred is that
    field's voxelisation. ``refine_output="voxels"`` returns the grid itself and exports
@@ -57,6 +61,8 @@ from mi_grg.core.gaussians import Gaussians
 #: The exported Gaussians' file stem for each ``refine_output``: "gaussians" when they are
 #: the scored result, another name when the result is a grid they are not.
 EXPORT_STEMS = {"gaussians": "gaussians", "voxels": "gaussians_before_voxel_step"}
+#: Detector tiles per side of a held-out view (``tile_means``).
+TILES = 8
 #: PDHG iterations between held-out checks of the refinement's length.
 CHECK_EVERY = 5
 #: Checks without a new minimum of the held-out residual after which the length decision
@@ -149,7 +155,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
     minimum (None: ``PATIENCE``; 0: at the cap). ``norm_A``: the fitted views' ||A|| from
     an earlier decision (None: PDHG's power iteration).
     Returns {"iterations", "at_cap", "curve": [(iteration, held-out MSE)], "heldout_mse"
-    (the curve's minimum), "heldout_mse_chosen" (at "iterations"), "norm_A", "seconds"}."""
+    (the curve's minimum), "heldout_mse_chosen" (at "iterations"), "heldout_tiles" (the
+    minimum's ``tile_means``), "norm_A", "seconds"}."""
     from mi_grg.classical.pdhg import PDHG
     from mi_grg.core.joseph import forward_project
     from tqdm import tqdm
@@ -166,14 +173,15 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
         b_fit, b_held = trainer.case.train[fit], trainer.case.train[held]
 
     def held_mse(x):
-        r = forward_project(x, geo, geo.angles[held]) - b_held
-        return float(np.mean(np.square(r, dtype=np.float64)))
+        r2 = np.square(forward_project(x, geo, geo.angles[held]) - b_held, dtype=np.float64)
+        return float(np.mean(r2)), tile_means(r2)
 
     solver = PDHG(b_fit, geo, geo.angles[fit], lam=cfg.refine_lam, init=start,
                   norm_A=norm_A)
     cap = int(cfg.refine_max_iterations)
     patience = PATIENCE if patience is None else int(patience)
-    curve = [(0, held_mse(start))]
+    mse, tiles = held_mse(start)
+    curve, best_tiles = [(0, mse)], tiles
     desc = f"refine: its length ({'anchored' if anchored else 'plain'})"
     with tqdm(total=cap, desc=desc, disable=not progress, leave=False) as bar:
         for it in range(1, cap + 1):
@@ -181,14 +189,41 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
             bar.update(1)
             if it % CHECK_EVERY == 0 or it == cap:
                 x = np.asarray(solver.x.numpy(), np.float32).reshape(geo.nVoxel)
-                curve.append((it, held_mse(x)))
+                mse, tiles = held_mse(x)
+                if mse < min(m for _, m in curve):
+                    best_tiles = tiles
+                curve.append((it, mse))
                 if past_patience(curve, patience):
                     break
     best_mse = min(m for _, m in curve)
     length, chosen = curve_length(curve, cfg.refine_fall, cfg.refine_tol)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
+            "heldout_tiles": best_tiles,
             "norm_A": solver.norm_A, "seconds": time.perf_counter() - t0}
+
+
+def tile_means(r2: np.ndarray) -> np.ndarray:
+    """Means of ``r2`` [view, v, u] over ``TILES`` x ``TILES`` detector tiles of each view
+    (fewer on a detector with fewer pixels), flattened [view * tiles] float64: the units
+    whose scatter gives a held-out comparison its standard error (neighbouring pixels
+    share their errors; tiles far apart hardly do)."""
+    nv, nu = r2.shape[1:]
+    tv, tu = min(TILES, nv), min(TILES, nu)     # a tile holds at least one pixel
+    rows = np.searchsorted((np.arange(nv) * tv) // nv, np.arange(tv))
+    cols = np.searchsorted((np.arange(nu) * tu) // nu, np.arange(tu))
+    sums = np.add.reduceat(np.add.reduceat(r2, rows, axis=1), cols, axis=2)
+    counts = np.outer(np.diff(np.append(rows, nv)), np.diff(np.append(cols, nu)))
+    return (sums / counts).reshape(-1)
+
+
+def difference_z(a: np.ndarray, b: np.ndarray) -> float:
+    """mean(a - b) over its standard error, for paired tile means ``a``, ``b`` (0 where
+    they are equal; +-inf where they differ by a constant)."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    se = float(np.std(d, ddof=1)) / np.sqrt(d.size) if d.size > 1 else 0.0
+    m = float(np.mean(d))
+    return m / se if se > 0 else (0.0 if m == 0 else float(np.sign(m)) * np.inf)
 
 
 def curve_length(curve, fall: float, tol: float) -> tuple:
@@ -218,6 +253,12 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
     from mi_grg.training.distill import fit_to_volume
     cfg = trainer.cfg.protocol
     forms = {"auto": (True, False), "on": (True,), "off": (False,)}[cfg.refine_anchor]
+    resolved = None
+    if cfg.refine_anchor == "auto":
+        from mi_grg.training.densify import demand
+        resolved = demand(trainer.state.log, trainer.densifier.window)
+        if not resolved["met"]:     # the field's sub-voxel content is not the object's
+            forms = (False,)
     start = field_volume(decider, kept)     # once for both forms
     lengths, norm_A = {}, None
     for a in forms:     # both forms run on the same views: one power iteration serves
@@ -237,8 +278,14 @@ def refine_field(trainer, field: Gaussians, vol: np.ndarray, kept: Gaussians, de
             "curve": length["curve"],
             "decision_seconds": sum(x["seconds"] for x in lengths.values()),
             "anchor": {"rule": cfg.refine_anchor, "anchored": anchored,
+                       "densification": resolved,
                        "heldout_mse": {("anchored" if a else "plain"): x["heldout_mse"]
                                        for a, x in lengths.items()},
+                       # the anchor's advantage in standard errors of the tiles' paired
+                       # differences (negative: anchored lower)
+                       "z": (difference_z(lengths[True]["heldout_tiles"],
+                                          lengths[False]["heldout_tiles"])
+                             if len(forms) == 2 else None),
                        # every form's held-out curve, so that a length rule can be
                        # replayed on both
                        "curves": {("anchored" if a else "plain"): x["curve"]
