@@ -180,8 +180,8 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
                   norm_A=norm_A)
     cap = int(cfg.refine_max_iterations)
     patience = PATIENCE if patience is None else int(patience)
-    mse, tiles = held_mse(start)
-    curve, best_tiles = [(0, mse)], tiles
+    best_mse, best_tiles = held_mse(start)
+    curve = [(0, best_mse)]
     desc = f"refine: its length ({'anchored' if anchored else 'plain'})"
     with tqdm(total=cap, desc=desc, disable=not progress, leave=False) as bar:
         for it in range(1, cap + 1):
@@ -190,12 +190,11 @@ def decide_length(trainer, kept: Gaussians, progress: bool = True,
             if it % CHECK_EVERY == 0 or it == cap:
                 x = np.asarray(solver.x.numpy(), np.float32).reshape(geo.nVoxel)
                 mse, tiles = held_mse(x)
-                if mse < min(m for _, m in curve):
-                    best_tiles = tiles
+                if mse < best_mse:
+                    best_mse, best_tiles = mse, tiles
                 curve.append((it, mse))
                 if past_patience(curve, patience):
                     break
-    best_mse = min(m for _, m in curve)
     length, chosen = curve_length(curve, cfg.refine_fall, cfg.refine_tol)
     return {"iterations": length, "at_cap": length == cap, "curve": curve,
             "heldout_mse": best_mse, "heldout_mse_chosen": chosen,
