@@ -260,7 +260,8 @@ def add_experiment_parser(subparsers) -> None:
     e.add_argument("--suite", required=True, help="suite JSON (experiments/suite_cpu.json)")
     e.add_argument("--out", required=True, help="results directory")
     e.add_argument("--jobs", type=int, help="parallel runs (default: cores; 1 on a GPU)")
-    e.add_argument("--methods", help="comma-separated methods to keep (e.g. fdk,sart)")
+    e.add_argument("--methods", help="comma-separated methods or rows to keep (e.g. fdk,sart "
+                                     "or gr-paper)")
     e.add_argument("--cases", help="comma-separated case names to keep")
     e.add_argument("--dry-run", action="store_true", help="print the plan, run nothing")
     e.add_argument("--dask", metavar="ADDRESS", help="run on the Dask cluster of this "
@@ -287,6 +288,8 @@ def cmd_experiment(args) -> int:
             extra = f" -> {r['target']}" if "target" in r else ""
             if r.get("stale"):
                 extra += f" (ran with other defaults: {', '.join(r['stale'])})"
+            if r.get("trains_with"):
+                extra += f" (shares the training of {r['trains_with']}: result steps only)"
             if "resumes" in r:
                 extra += (" (resumes from its checkpoint)" if r["resumes"] else
                           " (its checkpoint is of other training options: starts afresh)")

@@ -4,6 +4,7 @@ independently from metrics.json."""
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,8 @@ from mi_grg.training.config import make_config
 from mi_grg.lab.plan import plan_experiment
 from mi_grg.lab.report import PAPER_TABLE1, load_runs, seeds_table, summary_lines, write_report
 from mi_grg.protocol.early_stop import replay
-from mi_grg.lab.runner import expected_cost, run_experiment, stale_options
+from mi_grg.lab.reuse import stale_options
+from mi_grg.lab.runner import expected_cost, run_experiment
 from mi_grg.lab.suite import EXPERIMENTS, SuiteError, load_suite
 
 REPO = Path(__file__).resolve().parents[1]
@@ -198,6 +200,52 @@ def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     assert "other defaults" not in write_report(out, tmp_path / "r.md").read_text()
 
 
+def test_gr_paper_shares_gr_training(tmp_path, capsys):
+    """gr-paper differs from gr only after training: it runs after gr, from gr's final
+    checkpoint, and scores what gr's trained Gaussians alone score; planned again with gr
+    finished, it takes gr's checkpoint at once. A twin trained under other options is not
+    shared."""
+    suite = _suite(tmp_path, methods=("gr",))
+    raw = json.loads(suite.read_text())
+    raw["cases"] = raw["cases"][:1]
+    raw["method_options"] = {"gr": {"iterations": 4, "n_points": 300, "holdout_every": 0}}
+    suite.write_text(json.dumps(raw))
+    out = tmp_path / "out"
+    case = out / "table1" / "shepp"
+    plan = run_experiment("table1", suite, out, dry_run=True, methods="gr")
+    row = {r["run"]: r for r in plan["runs"]}
+    assert row["gr-paper"]["trains_with"] == str(case / "gr") and row["gr-paper"]["waits"]
+    assert "trains_with" not in row["gr"]
+    res = run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
+    assert res["failed"] == 0 and res["ran"] == 2
+    gr, paper = (_metrics(out, "shepp", r) for r in ("gr", "gr-paper"))
+    assert paper["method_info"]["init"].get("resumed_from")
+    assert "resumed_from" not in gr["method_info"]["init"]
+    assert paper["psnr_3d"] == pytest.approx(gr["method_info"]["result"]["parts"]["gaussians"],
+                                             abs=1e-6)
+    # its time is what it would take alone: gr's training wall clock and its own steps
+    assert paper["seconds"] > paper["method_info"]["resumed_seconds"] > 0
+    # gr finished, gr-paper to do again: the finished twin's checkpoint is taken at once
+    shutil.rmtree(case / "gr-paper")
+    row = {r["run"]: r for r in run_experiment("table1", suite, out, dry_run=True,
+                                               methods="gr-paper")["runs"]}
+    assert row["gr-paper"]["trains_with"] == str(case / "gr") and "waits" not in row["gr-paper"]
+    assert run_experiment("table1", suite, out, jobs=1, progress=False,
+                          methods="gr-paper")["ran"] == 1
+    again = _metrics(out, "shepp", "gr-paper")
+    assert again["method_info"]["init"].get("resumed_from")
+    assert again["psnr_3d"] == pytest.approx(paper["psnr_3d"], abs=1e-6)
+    # a finished gr trained under another option (its checkpoint says so) is no twin
+    shutil.rmtree(case / "gr-paper")
+    _rewrite_checkpoint_config(case / "gr" / "checkpoint.npz", tv_every=7)
+    from mi_grg.lab.reuse import take_twin_checkpoint
+    spec = next(s for s in plan_experiment("table1", load_suite(suite), methods={"gr-paper"}))
+    (case / "gr-paper").mkdir()
+    r = {"trains_with": str(case / "gr")}
+    take_twin_checkpoint(spec, r, out)
+    assert r["trains_with"] is None and not (case / "gr-paper" / "checkpoint.npz").exists()
+
+
 def _rewrite_checkpoint_config(path: Path, **changes) -> None:
     """As if the checkpoint at ``path`` had been written under other training options."""
     with np.load(path) as f:
@@ -224,6 +272,9 @@ def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path, capsys):
     first = json.loads((run_dir / "metrics.json").read_text())
     assert "resumed_from" not in first["method_info"]["init"]
     assert (run_dir / "checkpoint.npz").is_file()
+    # gr-paper, finished, would lend gr its checkpoint (test_gr_paper_shares_gr_training)
+    twin = run_dir.parent / "gr-paper"
+    shutil.rmtree(twin)
 
     def again(resumes):
         plan = run_experiment("table1", suite, out, dry_run=True, methods="gr")
@@ -236,6 +287,7 @@ def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path, capsys):
         assert ("resumes from its checkpoint" in line) is resumes, line
         res = run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
         assert res["failed"] == 0 and stale_options(run_dir) == []
+        shutil.rmtree(twin)
         return json.loads((run_dir / "metrics.json").read_text())
 
     def record(**changes):
@@ -539,6 +591,20 @@ def test_longest_runs_are_started_first(tmp_path):
     assert {m for _, m in order[-2:]} == {"fdk"}
     nostop = [s for s in plan_experiment("iterations", suite) if s.run.endswith("nostop")]
     assert nostop and expected_cost(nostop[0], out) > cost[(nostop[0].case.name, "gr")]
+
+
+def test_methods_filter_takes_row_names(tmp_path):
+    """--methods keeps a row by its own name (gr-paper without gr, pdhg-cold without the
+    PDHG rules); a name that is neither a method nor a row is an error that lists both."""
+    suite = load_suite(_suite(tmp_path, methods=("fdk", "pdhg", "gr")))
+    only = plan_experiment("table1", suite, methods={"gr-paper"}, cases=["shepp"])
+    assert [(s.run, s.method) for s in only] == [("gr-paper", "gr")]
+    assert only[0].options["refine"] == "none"
+    cold = {s.run for s in plan_experiment("table1", suite, methods={"pdhg-cold", "fdk"})}
+    assert cold == {"pdhg-cold", "fdk"}
+    with pytest.raises(ValueError, match=r"gr-papr.*their rows: .*gr-paper.*pdhg-cold"):
+        run_experiment("table1", tmp_path / "suite.json", tmp_path / "out", dry_run=True,
+                       methods="fdk,gr-papr")
 
 
 def test_repo_suites_are_valid():

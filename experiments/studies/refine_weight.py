@@ -34,6 +34,8 @@ import time
 
 import numpy as np
 
+from mi_grg.training.result import curve_length
+
 from field_result import save_record
 from refine_anchor import state_arguments, trained
 
@@ -93,9 +95,9 @@ def rules(rec: dict, default_lam: float) -> dict:
     default = best([p for p in pts if p[1] == default_lam], by_mse)
     out = {"default": default, "heldout": best(pts, by_mse)}
     curve = rec["curves"][default["form"]][str(default_lam)]
-    m0, mmin = curve[0][1], min(c[1] for c in curve)
-    for fall in FALLS:
-        it, _, ps = next(c for c in curve if c[1] <= m0 - fall * (m0 - mmin) + 1e-15)
+    for fall in FALLS:     # the package's own length rule, without its tolerance
+        it, _ = curve_length([c[:2] for c in curve], fall, 0.0)
+        ps = next(c[2] for c in curve if c[0] == it)
         out[f"fall {fall:g}"] = {**default, "iteration": it, "psnr": ps}
     out["none"] = best([p for p in pts if p[2] == 0], lambda p: 0)
     out["oracle"] = best(pts, lambda p: -p[4])

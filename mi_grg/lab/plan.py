@@ -116,7 +116,8 @@ def table2_variants() -> list:
 
 def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
     """The runs of experiment ``name`` on ``suite`` (optionally restricted to ``methods``
-    (base method names) and ``cases`` (case names))."""
+    (base method names, or row names such as "gr-paper" or "pdhg-cold") and ``cases`` (case
+    names))."""
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {name!r}; choose one of {list(EXPERIMENTS)} "
                          f"or 'all'")
@@ -129,7 +130,7 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
 
     def add(case, run, method, options, label=""):
         base = CURVE_METHODS_INV.get(method, method)
-        if want is None or base in want or method in want:
+        if want is None or base in want or method in want or run in want:
             specs.append(RunSpec(name, case, run, method, options, label or run))
 
     for case in case_list:
@@ -193,12 +194,15 @@ def plan_experiment(name: str, suite: Suite, methods=None, cases=None) -> list:
 
 
 def check_method_filter(names: list, suite: Suite, methods, specs: list) -> None:
-    """A ``--methods`` name that no run of experiments ``names`` uses is an error naming the
-    methods they do use (a misspelt name would otherwise plan nothing, silently)."""
+    """A ``--methods`` name that no run of experiments ``names`` uses (as its method or its
+    row) is an error naming the methods and rows they do have (a misspelt name would
+    otherwise plan nothing, silently)."""
     def used(runs):
         return {n for r in runs for n in (r.method, CURVE_METHODS_INV.get(r.method, r.method))}
-    unknown = [m for m in methods or () if m not in used(specs)]
+    every = [s for n in names for s in plan_experiment(n, suite)]
+    unknown = [m for m in methods or () if m not in used(specs) | {r.run for r in specs}]
     if unknown:
-        offered = sorted(used(s for n in names for s in plan_experiment(n, suite)))
+        rows = sorted({r.run for r in every} - used(every))
         raise ValueError(f"--methods {','.join(unknown)}: no run of {', '.join(names)} uses "
-                         f"it; their methods: {', '.join(offered)}")
+                         f"it; their methods: {', '.join(sorted(used(every)))}; their rows: "
+                         f"{', '.join(rows)}")

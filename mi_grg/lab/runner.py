@@ -27,7 +27,10 @@ resolves its options to (a default changed since: ``stale_options``; where only 
 that act after training changed, the run resumes from its final checkpoint and redoes only
 the result's steps, else it starts afresh); a run identical to
 one done elsewhere in OUT (same data, method and options) becomes a relative symlink to it
-instead of running again. ``OUT/<experiment>/runs.json`` is rewritten as runs finish.
+instead of running again; a trained run that differs from another of the same data and
+method only after training (gr-paper beside gr) shares its training: it runs after it, from
+its final checkpoint, and redoes only the result's steps (its time counts the training).
+``OUT/<experiment>/runs.json`` is rewritten as runs finish.
 
 Runs execute in spawned worker processes (Dr.Jit is not fork-safe), one fresh process per
 run, ``jobs`` at a time, each with ``cores // jobs`` Dr.Jit threads. A failing run writes
@@ -52,10 +55,9 @@ from pathlib import Path
 import numpy as np
 
 from mi_grg.lab.curves import register_experiment_methods
-from mi_grg.lab.finished import is_finished, read_finished
 from mi_grg.lab.plan import RunSpec, check_method_filter, plan_experiment
+from mi_grg.lab.reuse import plan_rows, resolve_duplicates, take_twin_checkpoint, write_specs
 from mi_grg.lab.suite import EXPERIMENTS, NOSTOP_DROP, TRAINED, CaseSpec, Suite, load_suite
-from mi_grg.lab.staleness import resumes, stale_keys
 
 
 def _worker_setup(variant: str, threads: int | None, extra: dict) -> None:
@@ -230,43 +232,6 @@ def _attempts_file(task: dict) -> Path:
     return data.with_name(data.name + ".attempts.txt")
 
 
-def stale_options(run_dir: Path) -> list:
-    """Training options of a finished r2/gr run whose values differ from what this code
-    resolves the run's options to (a default changed since it ran); [] if none differ or
-    the run is not a training run. Such a run is not reused: it is run again."""
-    m = read_finished(run_dir, {})
-    return [] if m is None else stale_keys(m)
-
-
-
-def _is_done(run_dir: Path) -> bool:
-    return is_finished(run_dir) and not stale_options(run_dir)
-
-
-def _index_done(out: Path) -> dict:
-    """key -> run_dir of every finished (non-symlinked) run under OUT."""
-    index = {}
-    for spec_file in out.glob("*/*/*/run_spec.json"):
-        d = spec_file.parent
-        if d.is_symlink() or not _is_done(d):
-            continue
-        try:
-            key = json.loads(spec_file.read_text())["key"]
-        except (OSError, ValueError, KeyError):
-            continue
-        index.setdefault(key, d)
-    return index
-
-
-def _link(link: Path, target: Path) -> None:
-    link.parent.mkdir(parents=True, exist_ok=True)
-    if link.is_symlink() or link.is_file():
-        link.unlink()
-    elif link.exists():
-        shutil.rmtree(link)   # an unfinished run replaced by an identical finished one
-    os.symlink(os.path.relpath(target, link.parent), link, target_is_directory=True)
-
-
 def expected_cost(spec: RunSpec, out: Path) -> float:
     """A rough relative cost of a run, to start the longest runs first.
 
@@ -332,7 +297,7 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
     check_method_filter(names, suite, methods, specs)
     # the workers of a cluster may start elsewhere: they get absolute paths
     out = Path(out_dir).absolute() if dask else Path(out_dir)
-    rows, todo = _plan_rows(specs, out)
+    rows, todo = plan_rows(specs, out)
     datas = {}
     for s in todo:
         if not (s.data_dir(out) / "meta_data.json").is_file():
@@ -365,9 +330,9 @@ def run_experiment(name: str, suite_path, out_dir, jobs: int | None = None, meth
         inv = _Invocation(name, names, suite, out, methods, cases, progress, client, n_jobs,
                           where, threads_per_run)
         sim_failed = inv.simulate(datas)
-        _write_specs(todo, rows, out)
+        write_specs(todo, rows, out)
         inv.run(todo, specs, rows, sim_failed)
-        _resolve_duplicates(specs, rows, out)
+        resolve_duplicates(specs, rows, out)
         inv.write_index(rows, final=True)
         summary.update({k: sum(r["status"] == k for r in rows)
                         for k in ("done before", "linked", "ran", "failed")})
@@ -425,66 +390,6 @@ def _as_list(values):
     return values
 
 
-def _plan_rows(specs: list, out: Path):
-    """(rows, todo): a row per spec with its status (done before, linked to an identical
-    finished run elsewhere, duplicate of another spec of this call, todo) and the specs to
-    run."""
-    index = _index_done(out) if out.exists() else {}
-    rows, todo, first_of = [], [], {}
-    for s in specs:
-        d, key = s.run_dir(out), s.key()
-        row = {"experiment": s.experiment, "case": s.case.name, "run": s.run,
-               "category": s.case.category, "label": s.label, "views": s.case.views,
-               "method": s.method, "options": s.options, "dir": str(d)}
-        if (d / "metrics.json").is_file() and not _is_done(d):
-            row["stale"] = stale_options(d)   # defaults changed since it ran: run again
-        if _is_done(d):
-            row["status"] = "done before"
-        elif key in index:
-            row["status"], row["target"] = "linked", str(index[key])
-        elif key in first_of:
-            row["status"], row["target"] = "duplicate", str(first_of[key].run_dir(out))
-        else:
-            row["status"] = "todo"
-            if (d / "checkpoint.npz").is_file():
-                stale = row.get("stale") if (d / "metrics.json").is_file() else None
-                row["resumes"] = resumes(s.method, s.options, d / "checkpoint.npz", stale)
-            first_of[key] = s
-            todo.append(s)
-        rows.append(row)
-    return rows, todo
-
-
-def _write_specs(todo: list, rows: list, out: Path) -> None:
-    """Each run's run_spec.json, before any runs: a run in progress is recognisable on disk.
-    A run starts afresh (its metrics.json and checkpoint gone) unless its row ``resumes``
-    (``mi_grg.lab.staleness.resumes``): then its checkpoint stays and the run continues from it."""
-    resume = {r["dir"] for r in rows if r.get("resumes")}
-    for s in todo:
-        d = s.run_dir(out)
-        if d.is_symlink():            # linked to a run that is stale now: run it here
-            d.unlink()
-        if str(d) not in resume:
-            (d / "checkpoint.npz").unlink(missing_ok=True)
-        (d / "metrics.json").unlink(missing_ok=True)
-        d.mkdir(parents=True, exist_ok=True)
-        (d / "run_spec.json").write_text(json.dumps({**s.to_dict(), "key": s.key()},
-                                                    indent=2, default=str))
-
-
-def _resolve_duplicates(specs: list, rows: list, out: Path) -> None:
-    """Linked and duplicate runs become links to their finished twin, or failures."""
-    for s, row in zip(specs, rows):
-        if row["status"] in ("linked", "duplicate"):
-            target = Path(row["target"])
-            if _is_done(target):
-                _link(s.run_dir(out), target)
-                row["status"] = "linked"
-            else:
-                row["status"] = "failed"
-                row["error"] = f"identical run {target} failed"
-
-
 @dataclasses.dataclass
 class _Invocation:
     """What the steps of one ``run_experiment`` call share: where and how tasks run."""
@@ -534,34 +439,47 @@ class _Invocation:
     def run(self, todo: list, specs: list, rows: list, sim_failed: set) -> None:
         """Run the runs whose data exist, longest first; record each result in its row."""
         out = self.out
+        row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
         runnable = [s for s in todo if s.case.data_dir_name not in sim_failed]
+        # Runs that share a twin's training go after it (a second wave), from its checkpoint.
+        later = [s for s in runnable if row_of[s.key()][1].get("waits")]
+        for s in runnable:
+            if s not in later and row_of[s.key()][1].get("trains_with"):
+                take_twin_checkpoint(s, row_of[s.key()][1], out)
+        self._run_wave([s for s in runnable if s not in later], row_of, rows)
+        for s in later:
+            take_twin_checkpoint(s, row_of[s.key()][1], out)
+        self._run_wave(later, row_of, rows)
+        for s in todo:
+            if s.case.data_dir_name in sim_failed:
+                msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
+                (s.run_dir(out) / "error.txt").write_text(msg + "\n")
+                self._finish(row_of, s.key(), {"status": "failed", "error": msg})
+
+    def _finish(self, row_of: dict, key: str, r: dict) -> None:
+        s, row = row_of[key]
+        row.update({"status": "ran" if r["status"] == "ok" else "failed",
+                    **{k: v for k, v in r.items() if k != "status"}})
+        err = s.run_dir(self.out) / "error.txt"
+        if r["status"] != "ok" and not err.exists():   # the worker died before writing
+            err.write_text(str(r.get("error")) + "\n")
+
+    def _run_wave(self, runnable: list, row_of: dict, rows: list) -> None:
+        """Run ``runnable`` at once, longest first; record each result in its row."""
+        out = self.out
         # Longest first, so that no long run starts last and leaves the other workers idle.
-        runnable.sort(key=lambda s: -expected_cost(s, out))
+        runnable = sorted(runnable, key=lambda s: -expected_cost(s, out))
         tasks = [{**self.base_task(min(self.n_jobs or 1, len(runnable))),
                   "run_dir": str(s.run_dir(out)), "data_dir": str(s.data_dir(out)),
                   "method": s.method, "options": s.options} for s in runnable]
-        row_of = {s.key(): (s, row) for s, row in zip(specs, rows) if row["status"] == "todo"}
-
-        def finish(key, r):
-            s, row = row_of[key]
-            row.update({"status": "ran" if r["status"] == "ok" else "failed",
-                        **{k: v for k, v in r.items() if k != "status"}})
-            err = s.run_dir(out) / "error.txt"
-            if r["status"] != "ok" and not err.exists():   # the worker died before writing
-                err.write_text(str(r.get("error")) + "\n")
 
         def on_result(i, r):
-            finish(runnable[i].key(), r)
+            self._finish(row_of, runnable[i].key(), r)
             self.write_index(rows, final=False)
 
         if tasks:
             _execute(_run_task, tasks, self.n_jobs, self.name, self.progress,
                      on_result=on_result, client=self.client)
-        for s in todo:
-            if s.case.data_dir_name in sim_failed:
-                msg = f"simulation of data {s.case.data_dir_name} failed (see data/*.error.txt)"
-                (s.run_dir(out) / "error.txt").write_text(msg + "\n")
-                finish(s.key(), {"status": "failed", "error": msg})
 
 
 def _write_runs_json(exp_dir: Path, name: str, suite: Suite, rows: list, command: str,

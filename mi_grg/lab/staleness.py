@@ -109,6 +109,26 @@ def resumes(method: str, options: dict, checkpoint, stale: list | None) -> bool:
         return False
 
 
+def same_training(method: str, options_a: dict, options_b: dict) -> bool:
+    """Whether two runs of ``method`` train the same state: their resolved configs agree on
+    every field but those that act after training or only keep the books
+    (``AFTER_TRAINING``, ``BOOKKEEPING``), and their other options are equal. Such runs
+    share one training (``mi_grg.lab.runner``: gr-paper resumes from gr's final checkpoint)."""
+    if method not in PRESETS:
+        return False
+    skip = set(AFTER_TRAINING) | set(BOOKKEEPING)
+
+    def resolved(options):
+        opts = upgrade_config_dict({k: v for k, v in options.items() if k in FLAT_KEYS})
+        flat = make_config(method, options.get("config"), **opts).to_flat()
+        rest = {k: v for k, v in options.items() if k not in FLAT_KEYS and k != "config"}
+        return {k: v for k, v in flat.items() if k not in skip}, rest
+    try:
+        return resolved(options_a) == resolved(options_b)
+    except Exception:  # noqa: BLE001 (options this code does not take: no sharing)
+        return False
+
+
 #: What the automatic extent and iteration count resolved to in the earliest runs (which
 #: do not record it): the projector's 4.5 and 1500 x n / 64 (sqrt below 64).
 _OLD_AUTO = {"extent": 4.5, "iteration_rule": "1500*n/64"}
