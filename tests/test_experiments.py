@@ -235,8 +235,16 @@ def test_gr_paper_shares_gr_training(tmp_path, capsys):
     again = _metrics(out, "shepp", "gr-paper")
     assert again["method_info"]["init"].get("resumed_from")
     assert again["psnr_3d"] == pytest.approx(paper["psnr_3d"], abs=1e-6)
-    # a finished gr trained under another option (its checkpoint says so) is no twin
+    # gr resuming for its result's steps (stale after training only) lends its checkpoint too
     shutil.rmtree(case / "gr-paper")
+    m = _metrics(out, "shepp", "gr")
+    m["method_info"]["config"]["fit_iterations"] += 1
+    (case / "gr" / "metrics.json").write_text(json.dumps(m))
+    row = {r["run"]: r for r in run_experiment("table1", suite, out, dry_run=True,
+                                               methods="gr")["runs"]}
+    assert row["gr"]["resumes"] and row["gr-paper"]["trains_with"] == str(case / "gr")
+    assert row["gr-paper"]["waits"]
+    # a finished gr trained under another option (its checkpoint says so) is no twin
     _rewrite_checkpoint_config(case / "gr" / "checkpoint.npz", tv_every=7)
     from mi_grg.lab.reuse import take_twin_checkpoint
     spec = next(s for s in plan_experiment("table1", load_suite(suite), methods={"gr-paper"}))

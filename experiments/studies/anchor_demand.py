@@ -2,7 +2,10 @@
 prefers, what the held-out views chose, and what ``mi_grg.training.densify.demand`` says.
 
 Usage:  .venv/bin/python experiments/studies/anchor_demand.py --runs CASE:SET:DIR ...
-            [--report docs/bench/anchor_demand.md]
+            [--report docs/bench/anchor_demand.md] [--add]
+
+``--add`` keeps the rows already in the report's .json (run folders of earlier sessions,
+which need not exist any more) and adds or replaces the rows of ``--runs``.
 
 Each DIR is a finished gr run (metrics.json, train_log.csv), where it was made beside DIR_on
 and DIR_off: the same trained state with its result's steps redone anchored and plain
@@ -49,6 +52,11 @@ def one(case: str, role: str, run: Path) -> dict:
         forms[form] = {"heldout_mse": mse,
                        "psnr_3d": None if mf is None else mf["psnr_3d"]}
     verdict = demand(log, window)
+    # the count's growth over the whole window (the demand rule reads its last quarter)
+    start = [n for it, n in ((r["iteration"], r["n_gaussians"]) for r in log)
+             if it <= window.start] or [log[0]["n_gaussians"]]
+    end = [r["n_gaussians"] for r in log if r["iteration"] <= window.stop][-1]
+    verdict = {**verdict, "growth_window": end / max(start[-1], 1) - 1.0}
     heldout = min(forms, key=lambda f: (forms[f]["heldout_mse"], f != "anchored"))
     auto = heldout if verdict["met"] else "plain"
     pa, pp = forms["anchored"]["psnr_3d"], forms["plain"]["psnr_3d"]
@@ -57,6 +65,10 @@ def one(case: str, role: str, run: Path) -> dict:
             "heldout_takes": heldout, "auto_takes": auto,
             "gain": 0.0 if auto == heldout else forms[auto]["psnr_3d"] - forms[heldout]["psnr_3d"],
             "plain_minus_anchored": None if None in (pa, pp) else pp - pa}
+
+
+def _pct(x) -> str:
+    return "" if x is None else f"{100 * x:+.1f} %"
 
 
 def _db(x) -> str:
@@ -70,14 +82,16 @@ def report(rows: list, path: Path, command: str) -> None:
              "anchor\"; each row's numbers are in the .json beside this file). 3-D PSNR of "
              "each form's export in dB; held-out: the lower held-out minimum of the two "
              "forms (the rule before); auto: today's `refine_anchor=\"auto\"`.", "",
-             "| case | set | n | Gaussians (share of the cap) | growth, last quarter | demand | "
+             "| case | set | n | Gaussians (share of the cap) | growth, last quarter | "
+             "growth, whole window | demand | "
              "held-out MSE anchored / plain | held-out takes | anchored | plain | auto takes "
-             "| auto − held-out |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| auto − held-out |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         d, f = r["demand"], r["forms"]
         lines.append(
             f"| {r['case']} | {r['set']} | {r['nVoxel'][0]} | {r['n']} "
             f"({d['cap_share']:.3f}) | {100 * d['growth']:+.2f} % | "
+            f"{_pct(d.get('growth_window'))} | "
             f"{'met' if d['met'] else '**not met**'} | {f['anchored']['heldout_mse']:.4g} / "
             f"{f['plain']['heldout_mse']:.4g} | {r['heldout_takes']} | "
             f"{_db(f['anchored']['psnr_3d'])} | {_db(f['plain']['psnr_3d'])} | "
@@ -96,13 +110,23 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--runs", nargs="+", required=True, help="CASE:SET:DIR")
     p.add_argument("--report", type=Path, default=Path("docs/bench/anchor_demand.md"))
+    p.add_argument("--add", action="store_true",
+                   help="keep the rows of the report's .json and add these")
     a = p.parse_args(argv)
-    rows = []
+    new = []
     for spec in a.runs:
         case, role, run = spec.split(":", 2)
-        rows.append(one(case, role, Path(run)))
-    report(rows, a.report, "python experiments/studies/anchor_demand.py " + " ".join(
-        sys.argv[1:] if argv is None else argv))
+        new.append(one(case, role, Path(run)))
+    command = "python experiments/studies/anchor_demand.py " + " ".join(
+        sys.argv[1:] if argv is None else argv)
+    rows = new
+    if a.add and a.report.with_suffix(".json").is_file():
+        ident = lambda r: (r["case"], r["set"], r["nVoxel"][0])  # noqa: E731
+        kept = json.loads(a.report.with_suffix(".json").read_text())
+        mine = {ident(r) for r in new}
+        rows = [r for r in kept if ident(r) not in mine] + new
+        command += " (added to the rows already in its .json, made by earlier runs of it)"
+    report(rows, a.report, command)
     print(f"wrote {a.report}")
     return 0
 

@@ -99,9 +99,12 @@ def training_twins(specs: list, rows: list, index: dict, out: Path) -> None:
             finished.append((json.loads(k), d))
         except ValueError:
             continue
-    trainers = []            # (spec) runs of this call that train their own state
+    trainers = []            # (spec) runs of this call that train (or resume) their own state
     for s, row in zip(specs, rows):
-        if row["status"] != "todo" or s.method not in TRAINED or row.get("resumes"):
+        if row["status"] != "todo" or s.method not in TRAINED:
+            continue
+        if row.get("resumes"):   # its own checkpoint: it may lend it once it has run
+            trainers.append(s)
             continue
         case = json.loads(s.key())["case"]
         twin = next((d for k, d in finished
