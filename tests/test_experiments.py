@@ -49,6 +49,17 @@ def _suite(tmp: Path, extra=None, methods=("fdk", "sart")) -> Path:
     return path
 
 
+def _tiny_gr_suite(tmp: Path, iterations: int) -> Path:
+    """One case (shepp), Table 1's gr rows, a few iterations without held-out views."""
+    suite = _suite(tmp, methods=("gr",))
+    raw = json.loads(suite.read_text())
+    raw["cases"] = raw["cases"][:1]
+    raw["method_options"] = {"gr": {"iterations": iterations, "n_points": 300,
+                                    "holdout_every": 0}}
+    suite.write_text(json.dumps(raw))
+    return suite
+
+
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("exp")
@@ -161,11 +172,7 @@ def test_killed_runner_leaves_index_of_finished_runs(tmp_path, monkeypatch):
 def test_training_run_with_changed_defaults_is_run_again(tmp_path):
     """A finished gr run whose recorded config differs from what the current defaults give
     is not reused (dry run names the option), and is run again afresh."""
-    suite = _suite(tmp_path, methods=("gr",))
-    raw = json.loads(suite.read_text())
-    raw["cases"] = raw["cases"][:1]
-    raw["method_options"] = {"gr": {"iterations": 2, "n_points": 300, "holdout_every": 0}}
-    suite.write_text(json.dumps(raw))
+    suite = _tiny_gr_suite(tmp_path, iterations=2)
     out = tmp_path / "out"
     # gr, its paper-configuration row (gr-paper) and its classical step alone (pdhg-cold)
     assert run_experiment("table1", suite, out, jobs=1, progress=False)["ran"] == 3
@@ -205,11 +212,7 @@ def test_gr_paper_shares_gr_training(tmp_path, capsys):
     checkpoint, and scores what gr's trained Gaussians alone score; planned again with gr
     finished, it takes gr's checkpoint at once. A twin trained under other options is not
     shared."""
-    suite = _suite(tmp_path, methods=("gr",))
-    raw = json.loads(suite.read_text())
-    raw["cases"] = raw["cases"][:1]
-    raw["method_options"] = {"gr": {"iterations": 4, "n_points": 300, "holdout_every": 0}}
-    suite.write_text(json.dumps(raw))
+    suite = _tiny_gr_suite(tmp_path, iterations=4)
     out = tmp_path / "out"
     case = out / "table1" / "shepp"
     plan = run_experiment("table1", suite, out, dry_run=True, methods="gr")
@@ -270,11 +273,7 @@ def test_a_run_resumes_only_where_its_trained_state_is_todays(tmp_path, capsys):
     training option (tv_every) starts afresh. An interrupted run (a checkpoint, no
     metrics.json) resumes if its checkpoint was made under today's training config, and
     starts afresh (rather than failing) if not."""
-    suite = _suite(tmp_path, methods=("gr",))
-    raw = json.loads(suite.read_text())
-    raw["cases"] = raw["cases"][:1]
-    raw["method_options"] = {"gr": {"iterations": 4, "n_points": 300, "holdout_every": 0}}
-    suite.write_text(json.dumps(raw))
+    suite = _tiny_gr_suite(tmp_path, iterations=4)
     out, run_dir = tmp_path / "out", tmp_path / "out" / "table1" / "shepp" / "gr"
     run_experiment("table1", suite, out, jobs=1, progress=False, methods="gr")
     first = json.loads((run_dir / "metrics.json").read_text())
