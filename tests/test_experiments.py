@@ -877,3 +877,13 @@ def test_the_record_keeps_runs_whose_folder_is_gone(serial, tmp_path):
     alone = write_report(tmp_path / "gone", tmp_path / "docs" / "alone.md",
                          record=record).read_text()
     assert _table_row(alone, "## Table 1", "FDK") == _table_row(md, "## Table 1", "FDK")
+    # a report over the record alone keeps the figures the report before made of its cases
+    img = tmp_path / "docs" / "img" / "first"
+    before = {p.name: p.read_bytes() for p in img.glob("*.png")}
+    assert "compare_shepp.png" in before and "compare_blob.png" in before
+    again = write_report(tmp_path / "gone", tmp_path / "docs" / "first.md",
+                         record=record).read_text()
+    assert {p.name: p.read_bytes() for p in img.glob("compare_*.png")} == {
+        k: v for k, v in before.items() if k.startswith("compare_")}
+    assert "![shepp](img/first/compare_shepp.png)" in again
+    assert "The figures of blob, shepp are those of the report" in again

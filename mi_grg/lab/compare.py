@@ -6,6 +6,7 @@ maps below (one scale too). ``comparison_section`` gives the report's markdown a
 one PNG per case."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -81,18 +82,40 @@ def comparison_figure(out_dir, rows, case: str, png: Path) -> Path | None:
     return png
 
 
-def comparison_section(out_dir, rows, img_dir: Path, rel: str) -> list:
-    """Markdown lines of the report's "Slices per case" section (Table 1's runs)."""
+def kept_figure(rows, case: str, name: str, img_dir: Path, earlier) -> Path | None:
+    """The figure ``name`` of ``case`` as the report in ``earlier`` (its image folder) made
+    it, copied into ``img_dir``, where some of the case's runs come from the record (their
+    volumes were not kept, so a new figure would lack them) and that figure exists; None
+    otherwise (the figure is made anew)."""
+    if earlier is None or not any(r.get("recorded") for r in rows or () if r["case"] == case):
+        return None
+    src = Path(earlier) / name
+    if not src.is_file():
+        return None
+    Path(img_dir).mkdir(parents=True, exist_ok=True)
+    return Path(shutil.copyfile(src, Path(img_dir) / name))
+
+
+def comparison_section(out_dir, rows, img_dir: Path, rel: str, earlier=None) -> list:
+    """Markdown lines of the report's "Slices per case" section (Table 1's runs);
+    ``earlier``: the image folder of the report this one replaces (``kept_figure``)."""
     md = ["## Slices per case", ""]
-    figures = []
+    figures, kept = [], []
     for case in sorted({r["case"] for r in rows or []}):
-        png = comparison_figure(out_dir, rows, case, Path(img_dir) / f"compare_{case}.png")
+        name = f"compare_{case}.png"
+        png = kept_figure(rows, case, name, img_dir, earlier)
+        if png is not None:
+            kept.append(case)
+        else:
+            png = comparison_figure(out_dir, rows, case, Path(img_dir) / name)
         if png is not None:
             figures += [f"![{case}]({rel}/{png.name})", ""]
     if not figures:
         return md + ["No case has both a ground truth and a finished run.", ""]
+    note = ([f"The figures of {', '.join(kept)} are those of the report that had their runs' "
+             "volumes (some of their runs are the record's now).", ""] if kept else [])
     return md + ["Central z slice of each case: ground truth, FDK, the best of SART / "
                  "ASD-POCS / PDHG under either weight rule (held-out stopped, by 3-D PSNR), r2 "
                  "and gr on one grey scale (0 to the ground truth's maximum); below, |error| "
                  "on 0 to "
-                 f"{ERROR_FRACTION:g} x that maximum.", ""] + figures
+                 f"{ERROR_FRACTION:g} x that maximum.", ""] + note + figures

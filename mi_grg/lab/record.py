@@ -9,7 +9,8 @@ with ``volume_files`` left out and ``record_of`` (the run folder it was copied f
 so it reads back without a volume (``mi_grg.lab.finished.run_problem``). A report with
 ``--record`` first copies every finished run of OUT into the record (replacing the earlier
 copy of the same run), then counts the record's other runs beside OUT's: their numbers as
-they were recorded, no figures (their volumes were not kept). A run of OUT that did not
+they were recorded; their volumes were not kept, so no new figure shows them, and the
+report keeps its earlier figures of their cases. A run of OUT that did not
 finish never removes a recorded one. The record alone is a results folder too:
 ``mi-grg report --out RECORD`` reports it.
 """

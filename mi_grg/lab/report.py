@@ -205,7 +205,8 @@ def _intro_md(out: Path, report: Path, all_rows: dict, record: Path | None) -> l
                    if r.get("recorded")})
     if kept:
         md += [f"From the record (`{record}`: each run's metrics.json as it was recorded; "
-               "their volumes were not kept, so they have no figures): "
+               "their volumes were not kept, so no new figure shows them; their cases keep "
+               "the figures of the report before): "
                + ", ".join(f"{exp}/{case}" for exp, case in kept) + ".", ""]
     md += ["Our numbers: 3-D PSNR (dB) and SSIM of the reconstructed volume against the "
            "simulated ground truth, R2-Gaussian's convention (data range 1, SSIM over 2-D "
@@ -389,8 +390,10 @@ def _seeds_md(sd, out: Path) -> list:
     return md
 
 
-def _extremes_md(t1, out: Path, img_dir: Path, rel: str) -> list:
-    """Montages of the best and worst case by gr's 3-D PSNR."""
+def _extremes_md(t1, out: Path, img_dir: Path, rel: str, earlier=None) -> list:
+    """Montages of the best and worst case by gr's 3-D PSNR (``earlier``: as in
+    ``mi_grg.lab.compare.kept_figure``)."""
+    from mi_grg.lab.compare import kept_figure
     md = ["## Best and worst cases", ""]
     if t1:
         idx = _index(t1)
@@ -409,7 +412,9 @@ def _extremes_md(t1, out: Path, img_dir: Path, rel: str) -> list:
             picks = [("best", ranked[-1][1])] + ([("worst", ranked[0][1])]
                                                  if len(ranked) > 1 else [])
         for which, case in picks:
-            png = montage(out, t1, case, img_dir / f"montage_{which}_{case}.png")
+            name = f"montage_{which}_{case}.png"
+            png = (kept_figure(t1, case, name, img_dir, earlier)
+                   or montage(out, t1, case, img_dir / name))
             if png is not None:
                 md += [f"{which.capitalize()} case by gr's 3-D PSNR (or the best method's "
                        f"where gr is missing): **{case}**", "",
@@ -438,13 +443,14 @@ def write_report(out_dir, report_path="docs/results.md", record=None) -> Path:
     img_dir = report_target(out, report, all_rows, record)
     rel = os.path.relpath(img_dir, report.parent)
     with staged_report(report, img_dir) as (tmp_report, tmp_img):
-        _write_md(out, report, all_rows, tmp_report, tmp_img, rel, record)
+        _write_md(out, report, all_rows, tmp_report, tmp_img, rel, record, earlier=img_dir)
     return report
 
 
 def _write_md(out: Path, report: Path, all_rows: dict, path: Path, img_dir: Path,
-              rel: str, record: Path | None = None) -> None:
-    """The report of ``all_rows`` into ``path``, its PNGs into ``img_dir``."""
+              rel: str, record: Path | None = None, earlier: Path | None = None) -> None:
+    """The report of ``all_rows`` into ``path``, its PNGs into ``img_dir`` (``earlier``: the
+    image folder of the report it replaces, whose figures of the record's cases it keeps)."""
     from mi_grg.lab.compare import comparison_section
     from mi_grg.lab.finished import broken_md
     t1 = all_rows.get("table1")
@@ -456,7 +462,7 @@ def _write_md(out: Path, report: Path, all_rows: dict, path: Path, img_dir: Path
     md += _speed_md(all_rows.get("speed"), t1, out, img_dir, rel)
     md += _views_md(all_rows.get("views"), out, img_dir, rel)
     md += _seeds_md(all_rows.get("seeds"), out)
-    md += comparison_section(out, t1, img_dir, rel)
-    md += _extremes_md(t1, out, img_dir, rel)
+    md += comparison_section(out, t1, img_dir, rel, earlier)
+    md += _extremes_md(t1, out, img_dir, rel, earlier)
     md += broken_md(all_rows)
     path.write_text("\n".join(md) + "\n")
