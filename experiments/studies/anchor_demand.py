@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 from pathlib import Path
 
 from mi_grg.training.densify import DensifyWindow, demand
@@ -52,11 +53,6 @@ def one(case: str, role: str, run: Path) -> dict:
         forms[form] = {"heldout_mse": mse,
                        "psnr_3d": None if mf is None else mf["psnr_3d"]}
     verdict = demand(log, window)
-    # the count's growth over the whole window (the demand rule reads its last quarter)
-    start = [n for it, n in ((r["iteration"], r["n_gaussians"]) for r in log)
-             if it <= window.start] or [log[0]["n_gaussians"]]
-    end = [r["n_gaussians"] for r in log if r["iteration"] <= window.stop][-1]
-    verdict = {**verdict, "growth_window": end / max(start[-1], 1) - 1.0}
     heldout = min(forms, key=lambda f: (forms[f]["heldout_mse"], f != "anchored"))
     auto = heldout if verdict["met"] else "plain"
     pa, pp = forms["anchored"]["psnr_3d"], forms["plain"]["psnr_3d"]
@@ -67,31 +63,26 @@ def one(case: str, role: str, run: Path) -> dict:
             "plain_minus_anchored": None if None in (pa, pp) else pp - pa}
 
 
-def _pct(x) -> str:
-    return "" if x is None else f"{100 * x:+.1f} %"
-
-
 def _db(x) -> str:
     return "" if x is None else f"{x:.2f}"
 
 
-def report(rows: list, path: Path, command: str) -> None:
+def report(rows: list, path: Path, commands: list) -> None:
+    made = ", then ".join(f"`{c}`" for c in commands)
     lines = ["# The refinement's anchor against densification's demand", "",
-             f"Made by `{command}` (experiments/studies/anchor_demand.py) from run folders "
-             "of one session (how they were made: docs/benchmarks.md, \"The refinement's "
+             f"Made by {made} (experiments/studies/anchor_demand.py) from run folders "
+             "(how they were made: docs/benchmarks.md, \"The refinement's "
              "anchor\"; each row's numbers are in the .json beside this file). 3-D PSNR of "
              "each form's export in dB; held-out: the lower held-out minimum of the two "
              "forms (the rule before); auto: today's `refine_anchor=\"auto\"`.", "",
-             "| case | set | n | Gaussians (share of the cap) | growth, last quarter | "
-             "growth, whole window | demand | "
+             "| case | set | n | Gaussians (share of the cap) | growth, last quarter | demand | "
              "held-out MSE anchored / plain | held-out takes | anchored | plain | auto takes "
-             "| auto − held-out |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| auto − held-out |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         d, f = r["demand"], r["forms"]
         lines.append(
             f"| {r['case']} | {r['set']} | {r['nVoxel'][0]} | {r['n']} "
             f"({d['cap_share']:.3f}) | {100 * d['growth']:+.2f} % | "
-            f"{_pct(d.get('growth_window'))} | "
             f"{'met' if d['met'] else '**not met**'} | {f['anchored']['heldout_mse']:.4g} / "
             f"{f['plain']['heldout_mse']:.4g} | {r['heldout_takes']} | "
             f"{_db(f['anchored']['psnr_3d'])} | {_db(f['plain']['psnr_3d'])} | "
@@ -119,14 +110,17 @@ def main(argv=None) -> int:
         new.append(one(case, role, Path(run)))
     command = "python experiments/studies/anchor_demand.py " + " ".join(
         sys.argv[1:] if argv is None else argv)
-    rows = new
+    rows, commands = new, [command]
     if a.add and a.report.with_suffix(".json").is_file():
         ident = lambda r: (r["case"], r["set"], r["nVoxel"][0])  # noqa: E731
         kept = json.loads(a.report.with_suffix(".json").read_text())
         mine = {ident(r) for r in new}
         rows = [r for r in kept if ident(r) not in mine] + new
-        command += " (added to the rows already in its .json, made by earlier runs of it)"
-    report(rows, a.report, command)
+        # the commands that made the kept rows, as the report before named them
+        head = a.report.read_text().split(" (experiments/studies/anchor_demand.py)")[0]
+        found = re.findall(r"`(python experiments/studies/anchor_demand\.py[^`]*)`", head)
+        commands = list(dict.fromkeys(found + commands))
+    report(rows, a.report, commands)
     print(f"wrote {a.report}")
     return 0
 
