@@ -1,7 +1,7 @@
 """Whether a finished run is stale: what its record (metrics.json) says it was run with,
 against what this code would run it with today.
 
-The lab reuses a finished run only if it is not stale (``mi_grg.lab.runner``), and the
+The lab reuses a finished run only if it is not stale (``mi_grg.lab.reuse``), and the
 report flags stale runs. Deciding that needs the history of the defaults: the iteration
 rules that earlier runs recorded by name, what the automatic fields resolved to before
 runs recorded it, and which options cannot change a run's result.
@@ -113,7 +113,7 @@ def same_training(method: str, options_a: dict, options_b: dict) -> bool:
     """Whether two runs of ``method`` train the same state: their resolved configs agree on
     every field but those that act after training or only keep the books
     (``AFTER_TRAINING``, ``BOOKKEEPING``), and their other options are equal. Such runs
-    share one training (``mi_grg.lab.runner``: gr-paper resumes from gr's final checkpoint)."""
+    share one training (``mi_grg.lab.reuse``: gr-paper resumes from gr's final checkpoint)."""
     if method not in PRESETS:
         return False
     skip = set(AFTER_TRAINING) | set(BOOKKEEPING)
